@@ -1,0 +1,116 @@
+"""rosbag2 MCAP bags through rosbags: read any bag, write MCAP bags atomically.
+
+Messages come back as rosbags dataclasses (the Jazzy type store), which msg_adapters reads
+like rclpy messages. A bag is written into a temporary sibling directory and moved into place
+only when it closed cleanly, so a failure never leaves a half-written bag behind.
+"""
+from __future__ import annotations
+
+import shutil
+import tempfile
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+from fhld_ros.errors import CliError
+from msg_adapters.family import RosbagsFamily, rosbags_family
+
+
+class BagError(CliError, ValueError):
+    """A bag cannot be read or written; the message names the bag and the problem."""
+
+
+def _open_reader(path: str | Path) -> Any:
+    from rosbags.highlevel import AnyReader
+    path = Path(path)
+    if not path.exists():
+        raise BagError(f'bag {path} does not exist')
+    try:
+        reader = AnyReader([path], default_typestore=rosbags_family().typestore)
+        reader.open()
+    except Exception as exc:  # rosbags raises several types for corrupt/unknown bags
+        raise BagError(f'cannot read bag {path}: {exc}') from exc
+    return reader
+
+
+def bag_topics(path: str | Path) -> dict[str, str]:
+    """Topic -> message type name of every connection in the bag."""
+    reader = _open_reader(path)
+    try:
+        return {c.topic: c.msgtype for c in reader.connections}
+    finally:
+        reader.close()
+
+
+def read_messages(path: str | Path,
+                  topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, Any]]:
+    """(topic, log time ns, deserialised message) in time order.
+
+    Every requested topic must exist in the bag; an empty selection yields nothing.
+    """
+    reader = _open_reader(path)
+    try:
+        connections = list(reader.connections)
+        if topics is not None:
+            wanted = list(topics)
+            present = {c.topic for c in connections}
+            missing = [t for t in wanted if t not in present]
+            if missing:
+                raise BagError(f'bag {path} has no topic {", ".join(missing)} (it has: '
+                               f'{", ".join(sorted(present)) or "nothing"})')
+            connections = [c for c in connections if c.topic in wanted]
+        for connection, stamp, raw in reader.messages(connections=connections):
+            try:
+                msg = reader.deserialize(raw, connection.msgtype)
+            except Exception as exc:
+                raise BagError(f'bag {path}: cannot decode a {connection.msgtype} message on '
+                               f'{connection.topic} at {stamp} ns: {exc}') from exc
+            yield connection.topic, stamp, msg
+    finally:
+        reader.close()
+
+
+class BagWriter:
+    """Context manager writing a rosbag2 MCAP bag: ``write(topic, msgtype, stamp_ns, msg)``."""
+
+    def __init__(self, path: str | Path, overwrite: bool = True) -> None:
+        self.path = Path(path)
+        self.overwrite = overwrite
+        self.family: RosbagsFamily = rosbags_family()
+        self._tmpdir: Path | None = None
+        self._writer: Any = None
+        self._connections: dict[str, Any] = {}
+
+    def __enter__(self) -> BagWriter:
+        from rosbags.rosbag2 import StoragePlugin, Writer
+        if self.path.exists() and not self.overwrite:
+            raise BagError(f'{self.path} exists')
+        parent = self.path.resolve().parent
+        if not parent.is_dir():
+            raise BagError(f'cannot write bag {self.path}: directory {parent} does not exist')
+        self._tmpdir = Path(tempfile.mkdtemp(prefix=f'.{self.path.name}.', dir=parent))
+        self._writer = Writer(self._tmpdir / 'bag', version=9,
+                              storage_plugin=StoragePlugin.MCAP)
+        self._writer.open()
+        return self
+
+    def write(self, topic: str, msgtype: str, stamp_ns: int, msg: Any) -> None:
+        connection = self._connections.get(topic)
+        if connection is None:
+            connection = self._writer.add_connection(topic, msgtype,
+                                                     typestore=self.family.typestore)
+            self._connections[topic] = connection
+        elif connection.msgtype != msgtype:
+            raise BagError(f'topic {topic} is {connection.msgtype}, not {msgtype}')
+        data = self.family.typestore.serialize_cdr(msg, msgtype)
+        self._writer.write(connection, int(stamp_ns), data)
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
+        try:
+            self._writer.close()
+            if exc_type is None:
+                if self.path.exists():
+                    shutil.rmtree(self.path) if self.path.is_dir() else self.path.unlink()
+                (self._tmpdir / 'bag').rename(self.path)
+        finally:
+            shutil.rmtree(self._tmpdir, ignore_errors=True)

@@ -1,0 +1,134 @@
+"""Lanes <-> visualization_msgs/MarkerArray and nav_msgs/Path (ARCHITECTURE.md §3, fixed).
+
+A /lanes message is: one DELETEALL marker (ns `lanes`), one LINE_STRIP per lane (ns `lanes`,
+id stable per lane, colour alpha = confidence, text `conf=0.93`), and one LINE_STRIP in ns
+`bev_window` with the closed 5-point outline of the searched window.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+from collections.abc import Sequence
+
+import numpy as np
+
+from msg_adapters.family import MessageFamily, stamp_to_ns
+
+LANES_NS = 'lanes'
+WINDOW_NS = 'bev_window'
+LINE_STRIP = 4
+ADD = 0
+DELETEALL = 3
+LINE_WIDTH_M = 0.15
+# Distinct, colour-blind friendly hues (Okabe-Ito); a lane keeps its colour through its id.
+PALETTE = np.array([[0.90, 0.62, 0.00], [0.34, 0.71, 0.91], [0.00, 0.62, 0.45],
+                    [0.94, 0.89, 0.26], [0.00, 0.45, 0.70], [0.84, 0.37, 0.00],
+                    [0.80, 0.47, 0.65]])
+
+
+@dataclass
+class LaneSet:
+    """The lanes of one MarkerArray, in its frame."""
+
+    stamp_ns: int
+    frame_id: str
+    lanes: list[np.ndarray] = field(default_factory=list)  # (K, 3) float64 each
+    confidences: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    ids: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    window_outline: np.ndarray | None = None  # (5, 3) closed polygon
+
+
+def _points(family: MessageFamily, xyz: np.ndarray) -> list:
+    return [family.new('geometry_msgs/msg/Point', x=x, y=y, z=z)
+            for x, y, z in np.asarray(xyz, dtype=np.float64).tolist()]
+
+
+def _identity_pose(family: MessageFamily) -> Any:
+    return family.new('geometry_msgs/msg/Pose',
+                      orientation=family.new('geometry_msgs/msg/Quaternion', w=1.0))
+
+
+def _line_strip(family: MessageFamily, header: Any, ns: str, marker_id: int, xyz: np.ndarray,
+                rgba: Sequence[float], text: str = '') -> Any:
+    r, g, b, a = (float(v) for v in rgba)
+    return family.new(
+        'visualization_msgs/msg/Marker', header=header, ns=ns, id=int(marker_id),
+        type=LINE_STRIP, action=ADD, pose=_identity_pose(family),
+        scale=family.new('geometry_msgs/msg/Vector3', x=LINE_WIDTH_M),
+        color=family.new('std_msgs/msg/ColorRGBA', r=r, g=g, b=b, a=a),
+        points=_points(family, xyz), text=text)
+
+
+def lanes_to_marker_array(family: MessageFamily, header: Any, lanes: Sequence[np.ndarray],
+                          confidences: Sequence[float], ids: Sequence[int],
+                          window_outline: np.ndarray | None = None) -> Any:
+    """MarkerArray of the §3 contract; `window_outline` (5, 3) adds the bev_window strip."""
+    if not len(lanes) == len(confidences) == len(ids):
+        raise ValueError(f'{len(lanes)} lanes, {len(confidences)} confidences and {len(ids)} '
+                         'ids must match')
+    markers = [family.new('visualization_msgs/msg/Marker', header=header, ns=LANES_NS,
+                          action=DELETEALL, pose=_identity_pose(family))]
+    for lane, conf, lane_id in zip(lanes, confidences, ids):
+        conf = float(np.clip(conf, 0.0, 1.0))
+        rgb = PALETTE[int(lane_id) % len(PALETTE)]
+        markers.append(_line_strip(family, header, LANES_NS, lane_id, lane, (*rgb, conf),
+                                   f'conf={conf:.2f}'))
+    if window_outline is not None:
+        outline = np.asarray(window_outline, dtype=np.float64)
+        if outline.shape != (5, 3):
+            raise ValueError(f'window outline must be (5, 3), got {outline.shape}')
+        markers.append(_line_strip(family, header, WINDOW_NS, 0, outline, (0.6, 0.6, 0.6, 0.8)))
+    return family.new('visualization_msgs/msg/MarkerArray', markers=markers)
+
+
+def _confidence(marker: Any) -> float:
+    text = str(marker.text)
+    if text.startswith('conf='):
+        try:
+            return float(text[5:])
+        except ValueError:
+            pass
+    return float(marker.color.a)
+
+
+def marker_array_to_lanes(msg: Any) -> LaneSet:
+    """Lanes, confidences, ids and window outline of a /lanes (or /lanes_gt) MarkerArray."""
+    markers = list(msg.markers)
+    if not markers:
+        return LaneSet(stamp_ns=0, frame_id='')
+    head = markers[0].header
+    result = LaneSet(stamp_ns=stamp_to_ns(head.stamp), frame_id=str(head.frame_id))
+    lanes, confidences, ids = [], [], []
+    for marker in markers:
+        if int(marker.action) == DELETEALL or int(marker.type) != LINE_STRIP:
+            continue
+        xyz = np.array([(p.x, p.y, p.z) for p in marker.points], dtype=np.float64).reshape(-1, 3)
+        if marker.ns == WINDOW_NS:
+            result.window_outline = xyz
+            continue
+        lanes.append(xyz)
+        confidences.append(_confidence(marker))
+        ids.append(int(marker.id))
+    result.lanes = lanes
+    result.confidences = np.asarray(confidences, dtype=np.float64)
+    result.ids = np.asarray(ids, dtype=np.int64)
+    return result
+
+
+def lane_to_path(family: MessageFamily, header: Any, lane: np.ndarray | None) -> Any:
+    """nav_msgs/Path through a lane's points, each pose heading along the lane; empty if None."""
+    if lane is None or len(lane) == 0:
+        return family.new('nav_msgs/msg/Path', header=header, poses=[])
+    xyz = np.asarray(lane, dtype=np.float64)
+    step = np.diff(xyz[:, :2], axis=0) if len(xyz) > 1 else np.array([[1.0, 0.0]])
+    step = np.vstack([step, step[-1:]])  # the last point keeps the last segment's heading
+    yaw = np.arctan2(step[:, 1], step[:, 0])
+    poses = []
+    for (x, y, z), half in zip(xyz.tolist(), (yaw / 2).tolist()):
+        pose = family.new(
+            'geometry_msgs/msg/Pose',
+            position=family.new('geometry_msgs/msg/Point', x=x, y=y, z=z),
+            orientation=family.new('geometry_msgs/msg/Quaternion', z=float(np.sin(half)),
+                                   w=float(np.cos(half))))
+        poses.append(family.new('geometry_msgs/msg/PoseStamped', header=header, pose=pose))
+    return family.new('nav_msgs/msg/Path', header=header, poses=poses)

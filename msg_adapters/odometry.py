@@ -1,0 +1,122 @@
+"""nav_msgs/Odometry and geometry_msgs/Pose <-> 4x4 homogeneous matrices, and interpolation."""
+from __future__ import annotations
+
+from typing import Any
+from collections.abc import Sequence
+
+import numpy as np
+
+from msg_adapters.family import MessageFamily
+
+
+def quaternion_to_matrix(q: Sequence[float]) -> np.ndarray:
+    """(x, y, z, w) -> 3x3 rotation; the quaternion need not be normalised."""
+    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def matrix_to_quaternion(rotation: np.ndarray) -> np.ndarray:
+    """3x3 rotation -> (x, y, z, w) with w >= 0 (Shepperd's method, stable for all angles)."""
+    m = np.asarray(rotation, dtype=np.float64)
+    trace = np.trace(m)
+    candidates = np.array([trace, m[0, 0], m[1, 1], m[2, 2]])
+    k = int(np.argmax(candidates))
+    if k == 0:
+        s = 2.0 * np.sqrt(1.0 + trace)
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4]
+    elif k == 1:
+        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = [s / 4, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
+    elif k == 2:
+        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q = [(m[0, 1] + m[1, 0]) / s, s / 4, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, s / 4, (m[1, 0] - m[0, 1]) / s]
+    q = np.asarray(q)
+    return q if q[3] >= 0 else -q
+
+
+def euler_to_matrix(x: float, y: float, z: float, roll: float, pitch: float,
+                    yaw: float) -> np.ndarray:
+    """[x, y, z, roll, pitch, yaw] (ROS fixed-axis RPY, radians) -> 4x4."""
+    cr, sr, cp, sp, cy, sy = (np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch),
+                              np.cos(yaw), np.sin(yaw))
+    transform = np.eye(4)
+    transform[:3, :3] = [[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                         [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                         [-sp, cp * sr, cp * cr]]
+    transform[:3, 3] = (x, y, z)
+    return transform
+
+
+def pose_to_matrix(pose: Any) -> np.ndarray:
+    """geometry_msgs/Pose (any family) -> 4x4."""
+    o, p = pose.orientation, pose.position
+    transform = np.eye(4)
+    transform[:3, :3] = quaternion_to_matrix((o.x, o.y, o.z, o.w))
+    transform[:3, 3] = (p.x, p.y, p.z)
+    return transform
+
+
+def odometry_to_matrix(odom: Any) -> np.ndarray:
+    """Pose of odom.child_frame_id in odom.header.frame_id as a 4x4."""
+    return pose_to_matrix(odom.pose.pose)
+
+
+def matrix_to_pose(family: MessageFamily, transform: np.ndarray) -> Any:
+    q = matrix_to_quaternion(transform[:3, :3])
+    t = transform[:3, 3]
+    return family.new(
+        'geometry_msgs/msg/Pose',
+        position=family.new('geometry_msgs/msg/Point', x=float(t[0]), y=float(t[1]),
+                            z=float(t[2])),
+        orientation=family.new('geometry_msgs/msg/Quaternion', x=float(q[0]), y=float(q[1]),
+                               z=float(q[2]), w=float(q[3])))
+
+
+def make_odometry(family: MessageFamily, header: Any, child_frame_id: str, transform: np.ndarray,
+                  linear: Sequence[float] = (0.0, 0.0, 0.0),
+                  angular: Sequence[float] = (0.0, 0.0, 0.0)) -> Any:
+    """nav_msgs/Odometry with the pose of `child_frame_id` and a twist in the child frame."""
+    vec = 'geometry_msgs/msg/Vector3'
+    twist = family.new('geometry_msgs/msg/Twist',
+                       linear=family.new(vec, **dict(zip('xyz', map(float, linear)))),
+                       angular=family.new(vec, **dict(zip('xyz', map(float, angular)))))
+    return family.new(
+        'nav_msgs/msg/Odometry', header=header, child_frame_id=child_frame_id,
+        pose=family.new('geometry_msgs/msg/PoseWithCovariance',
+                        pose=matrix_to_pose(family, transform)),
+        twist=family.new('geometry_msgs/msg/TwistWithCovariance', twist=twist))
+
+
+def slerp(q0: np.ndarray, q1: np.ndarray, fraction: float) -> np.ndarray:
+    """Shortest-arc spherical interpolation of unit quaternions (x, y, z, w)."""
+    q0 = np.asarray(q0, dtype=np.float64)
+    q1 = np.asarray(q1, dtype=np.float64)
+    dot = float(np.dot(q0, q1))
+    if dot < 0.0:
+        q1, dot = -q1, -dot
+    if dot > 0.9995:  # nearly parallel: lerp is exact enough and avoids 0/0
+        q = q0 + fraction * (q1 - q0)
+        return q / np.linalg.norm(q)
+    theta = np.arccos(dot)
+    return (np.sin((1 - fraction) * theta) * q0 + np.sin(fraction * theta) * q1) / np.sin(theta)
+
+
+def interpolate_pose(t: float, t0: float, pose0: np.ndarray, t1: float,
+                     pose1: np.ndarray) -> np.ndarray:
+    """Pose at time t between two stamped 4x4 poses (linear translation, slerp rotation).
+
+    Outside [t0, t1] the fraction is clamped: a small extrapolation is safer as a hold.
+    """
+    fraction = 0.0 if t1 == t0 else float(np.clip((t - t0) / (t1 - t0), 0.0, 1.0))
+    transform = np.eye(4)
+    q = slerp(matrix_to_quaternion(pose0[:3, :3]), matrix_to_quaternion(pose1[:3, :3]), fraction)
+    transform[:3, :3] = quaternion_to_matrix(q)
+    transform[:3, 3] = (1 - fraction) * pose0[:3, 3] + fraction * pose1[:3, 3]
+    return transform
