@@ -42,6 +42,18 @@ def bag_topics(path: str | Path) -> dict[str, str]:
         reader.close()
 
 
+def topic_counts(path: str | Path) -> dict[str, int]:
+    """Topic -> number of messages, from the bag's index (no message is read)."""
+    reader = _open_reader(path)
+    try:
+        counts: dict[str, int] = {}
+        for connection in reader.connections:
+            counts[connection.topic] = counts.get(connection.topic, 0) + connection.msgcount
+        return counts
+    finally:
+        reader.close()
+
+
 def read_messages(path: str | Path,
                   topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, Any]]:
     """(topic, log time ns, deserialised message) in time order.

@@ -17,6 +17,9 @@ from collections.abc import Callable
 
 SECTIONS: dict[str, str] = {
     'adapters': 'msg_adapters.bench:bench_decode',
+    'bev': 'fhld_ros.bev:bench_bev',
+    'classical': 'fhld_ros.classical:bench_classical',
+    'metrics': 'fhld_ros.metrics:bench_metrics',
 }
 
 

@@ -14,6 +14,9 @@ from fhld_ros.errors import CliError
 # subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     'bench': ('fhld_ros.bench', 'time the pipeline stages on this machine (medians)'),
+    'replay': ('fhld_ros.replay', 'run the detector pipeline over a bag on bag time'),
+    'eval': ('fhld_ros.evaluate',
+             'score predicted /lanes against /lanes_gt (FHLD point metric, ONCE-3DLanes metric)'),
 }
 
 __all__ = ['COMMANDS', 'CliError', 'build_parser', 'main']

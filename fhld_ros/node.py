@@ -1,43 +1,213 @@
-"""`lane_detector` node (ros2 run fhld_ros lane_detector).
+"""`lane_detector` node (ros2 run fhld_ros lane_detector): a thin shell around LanePipeline.
 
-Foundation stage: declares its parameters, logs them and spins; detection is wired in by the
-node issue. The math lives in pipeline.py, never here.
+The cloud callback only decodes and inserts into the rolling grid; detection runs on a timer
+(ROS time, so use_sim_time works) in its own callback group and never queues up: a cycle with
+no new sweep is skipped. A bad message is dropped, counted and warned about (throttled).
 """
 from __future__ import annotations
 
+import collections
+import dataclasses
 import sys
+import threading
+import time
 
-PARAMETERS: dict[str, tuple[object, str]] = {
-    'points_topic': ('points', 'input sensor_msgs/PointCloud2 topic'),
-    'odom_topic': ('odom', 'input nav_msgs/Odometry topic (optional)'),
-    'lanes_topic': ('lanes', 'output visualization_msgs/MarkerArray topic'),
-}
+import numpy as np
+
+from fhld_ros.parameters import DESCRIPTIONS, DetectorParams
+
+WARN_THROTTLE_SEC = 5.0
+QOS_CHECK_SEC = 1.0
 
 
 def main(args: list[str] | None = None) -> int:
     import rclpy
+    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+
+    rclpy.init(args=args)
+    try:
+        node = make_node()
+    except ValueError as exc:  # bad parameters or checkpoint: one clear line, no traceback
+        print(f'lane_detector: error: {exc}', file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    executor = MultiThreadedExecutor(num_threads=3)
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+def make_node():
+    """Build the node class lazily so importing this module needs no rclpy."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    from nav_msgs.msg import Odometry, Path
     from rcl_interfaces.msg import ParameterDescriptor
-    from rclpy.executors import ExternalShutdownException
+    from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
     from rclpy.node import Node
+    from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+    from sensor_msgs.msg import PointCloud2
+    from visualization_msgs.msg import MarkerArray
+
+    from fhld_ros.detectors import make_detector
+    from fhld_ros.pipeline import LanePipeline
+    from msg_adapters.family import rclpy_family
+    from msg_adapters.lanes import lane_to_path, lanes_to_marker_array
+
+    family = rclpy_family()
 
     class LaneDetectorNode(Node):
         def __init__(self) -> None:
             super().__init__('lane_detector')
-            for name, (default, description) in PARAMETERS.items():
-                self.declare_parameter(name, default, ParameterDescriptor(description=description))
-            values = {name: self.get_parameter(name).value for name in PARAMETERS}
-            self.get_logger().info(f'lane_detector started with parameters {values}')
+            self.params = self._declare_parameters()
+            self.get_logger().info(f'parameters: {self.params}')
+            self.pipeline = LanePipeline(self.params, make_detector(self.params))
+            self.lock = threading.Lock()
+            self.received_at: dict[int, float] = {}
+            self.latencies_ms: collections.deque[float] = collections.deque(maxlen=300)
+            self.counts = collections.Counter()
+            self.last_error = ''
+            self.said_no_odometry = False
+            self.started = time.monotonic()
 
-    rclpy.init(args=args)
-    node = LaneDetectorNode()
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+            inputs = MutuallyExclusiveCallbackGroup()
+            detection = MutuallyExclusiveCallbackGroup()
+            self.inputs = inputs
+            p = self.params
+            self.points_sub = None
+            self.points_reliability: ReliabilityPolicy | None = None
+            self._subscribe_points(ReliabilityPolicy.BEST_EFFORT
+                                   if p.input_reliability == 'best_effort'
+                                   else ReliabilityPolicy.RELIABLE)
+            self.create_subscription(Odometry, p.odom_topic, self.on_odometry, 50,
+                                     callback_group=inputs)
+            out_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
+            self.lanes_pub = self.create_publisher(MarkerArray, p.lanes_topic, out_qos)
+            self.left_pub = self.create_publisher(Path, f'{p.lanes_topic}/ego_left', out_qos)
+            self.right_pub = self.create_publisher(Path, f'{p.lanes_topic}/ego_right', out_qos)
+            self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', out_qos)
+            self.create_timer(1.0 / p.rate_hz, self.on_timer, callback_group=detection)
+            self.create_timer(1.0, self.publish_diagnostics, callback_group=detection)
+            if p.input_reliability == 'auto':
+                self.create_timer(QOS_CHECK_SEC, self.match_publisher_qos, callback_group=inputs)
+
+        def _declare_parameters(self) -> DetectorParams:
+            defaults, values = DetectorParams(), {}
+            for item in dataclasses.fields(DetectorParams):
+                default = getattr(defaults, item.name)
+                default = list(default) if isinstance(default, tuple) else default
+                descriptor = ParameterDescriptor(description=DESCRIPTIONS[item.name])
+                value = self.declare_parameter(item.name, default, descriptor).value
+                values[item.name] = tuple(value) if isinstance(value, list) else value
+            return DetectorParams(**values)
+
+        def _subscribe_points(self, reliability: ReliabilityPolicy) -> None:
+            if self.points_sub is not None:
+                self.destroy_subscription(self.points_sub)
+            # Sensor-data QoS (keep last 5, volatile) with the chosen reliability: a reliable
+            # subscription loses nothing from a bag player, a best-effort one takes drivers.
+            qos = QoSProfile(history=qos_profile_sensor_data.history, depth=5,
+                             durability=qos_profile_sensor_data.durability,
+                             reliability=reliability)
+            self.points_sub = self.create_subscription(
+                PointCloud2, self.params.points_topic, self.on_cloud, qos,
+                callback_group=self.inputs)
+            self.points_reliability = reliability
+            self.get_logger().info(f'subscribed to {self.params.points_topic} with '
+                                   f'{reliability.name} reliability')
+
+        def match_publisher_qos(self) -> None:
+            """input_reliability 'auto': reliable unless a best-effort publisher appears."""
+            infos = self.get_publishers_info_by_topic(
+                self.resolve_topic_name(self.params.points_topic))
+            if not infos:
+                return
+            best_effort = any(i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+                              for i in infos)
+            wanted = ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE
+            if wanted != self.points_reliability:
+                self._subscribe_points(wanted)
+
+        def _drop(self, what: str, exc: Exception) -> None:
+            self.counts[what] += 1
+            self.last_error = f'{what}: {exc}'
+            self.get_logger().warning(f'dropped {what.replace("_", " ")}: {exc}',
+                                      throttle_duration_sec=WARN_THROTTLE_SEC)
+
+        def on_odometry(self, msg: Odometry) -> None:
+            try:
+                with self.lock:
+                    self.pipeline.add_odometry(msg)
+            except Exception as exc:  # a bad message never takes the node down
+                self._drop('bad_odometry', exc)
+
+        def on_cloud(self, msg: PointCloud2) -> None:
+            arrived = time.monotonic()
+            self.counts['clouds_received'] += 1
+            try:
+                with self.lock:
+                    self.pipeline.add_cloud(msg)
+                    self.received_at[self.pipeline.grid.newest_stamp_ns] = arrived
+                    if len(self.received_at) > 100:
+                        self.received_at.pop(next(iter(self.received_at)))
+                    no_odometry = not self.pipeline.uses_odometry
+            except Exception as exc:
+                self._drop('bad_clouds', exc)
+                return
+            if no_odometry and not self.said_no_odometry:
+                self.said_no_odometry = True
+                self.get_logger().info(f'no odometry on {self.params.odom_topic} yet: '
+                                       'detecting per sweep in the cloud frame')
+
+        def on_timer(self) -> None:
+            try:
+                with self.lock:
+                    window = self.pipeline.take_window()
+                if window is None:
+                    return
+                out = self.pipeline.detect_window(window)
+                header = family.header(out.stamp_ns, out.frame_id)
+                self.lanes_pub.publish(lanes_to_marker_array(
+                    family, header, out.lanes, out.confidences, out.ids, out.outline))
+                self.left_pub.publish(lane_to_path(family, header, out.ego_left))
+                self.right_pub.publish(lane_to_path(family, header, out.ego_right))
+                arrived = self.received_at.get(out.stamp_ns)
+                if arrived is not None:
+                    self.latencies_ms.append((time.monotonic() - arrived) * 1e3)
+            except Exception as exc:
+                self.counts['detection_errors'] += 1
+                self.last_error = f'detection: {exc}'
+                self.get_logger().error(f'detection failed: {exc}',
+                                        throttle_duration_sec=WARN_THROTTLE_SEC)
+
+        def publish_diagnostics(self) -> None:
+            counters = dict(self.pipeline.counters, **self.counts)
+            elapsed = max(time.monotonic() - self.started, 1e-9)
+            values = {k: str(v) for k, v in sorted(counters.items())}
+            values['cloud_rate_hz'] = f'{counters.get("clouds", 0) / elapsed:.2f}'
+            values['detection_rate_hz'] = f'{counters.get("detections", 0) / elapsed:.2f}'
+            if self.latencies_ms:
+                p50, p95 = np.percentile(np.asarray(self.latencies_ms), [50, 95])
+                values['latency_ms_p50'], values['latency_ms_p95'] = f'{p50:.1f}', f'{p95:.1f}'
+            values['input_reliability'] = getattr(self.points_reliability, 'name', '')
+            values['last_error'] = self.last_error
+            dropped = counters.get('bad_clouds', 0) + counters.get('bad_odometry', 0)
+            status = DiagnosticStatus(
+                level=DiagnosticStatus.WARN if dropped or self.last_error else DiagnosticStatus.OK,
+                name='fhld_ros: lane_detector', hardware_id=self.get_fully_qualified_name(),
+                message=f'{dropped} bad messages dropped' if dropped else 'running',
+                values=[KeyValue(key=k, value=v) for k, v in values.items()])
+            msg = DiagnosticArray(header=family.header(self.get_clock().now().nanoseconds, ''),
+                                  status=[status])
+            self.diag_pub.publish(msg)
+
+    return LaneDetectorNode()
 
 
 if __name__ == '__main__':

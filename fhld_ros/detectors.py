@@ -1,0 +1,46 @@
+"""Detector back-ends behind one call: BevWindow -> (lanes in window frame, confidences)."""
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from fhld_ros.bev import BevWindow
+from fhld_ros.errors import CliError
+from fhld_ros.parameters import DetectorParams
+
+Detector = Callable[[BevWindow], tuple[list[np.ndarray], np.ndarray]]
+
+
+def classical_detector() -> Detector:
+    """The rule-based baseline on the accumulated window points."""
+    from fhld_ros.classical import ClassicalLaneDetector
+    baseline = ClassicalLaneDetector()
+    return lambda window: baseline.detect(window.points_window, window.intensity)
+
+
+def fhld_detector(params: DetectorParams) -> Detector:
+    """The FHLD model from params.checkpoint (default: the shipped weights)."""
+    import torch
+
+    from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT, CheckpointError, load_checkpoint
+    from fhld_ros.model.config import FhldConfig
+    path = params.checkpoint or DEFAULT_CHECKPOINT
+    if params.device == 'cuda' and not torch.cuda.is_available():
+        raise CliError("device 'cuda' was asked for but torch sees no CUDA device")
+    expect = FhldConfig(size_px=params.size_px, resolution_m=params.resolution_m)
+    try:
+        loaded = load_checkpoint(path, expect=expect, map_location=params.device)
+    except CheckpointError as exc:
+        raise CliError(str(exc)) from exc
+    model = loaded.model.to(params.device).eval()
+
+    def detect(window: BevWindow) -> tuple[list[np.ndarray], np.ndarray]:
+        raster = torch.from_numpy(window.raster).unsqueeze(0).to(params.device)
+        found = model.detect(raster, score_threshold=params.score_threshold)[0]
+        return found.lanes, found.confidences
+    return detect
+
+
+def make_detector(params: DetectorParams) -> Detector:
+    return classical_detector() if params.detector == 'classical' else fhld_detector(params)

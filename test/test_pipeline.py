@@ -1,0 +1,115 @@
+"""fhld_ros.pipeline: poses, frames, ids, ego lane and the detection cadence."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fhld_ros.parameters import DetectorParams
+from fhld_ros.pipeline import LaneIdTracker, LanePipeline, PoseBuffer, ego_lane_bounds
+from msg_adapters.family import rosbags_family
+from msg_adapters.odometry import euler_to_matrix, make_odometry
+from msg_adapters.pointcloud2 import create_cloud
+
+FAMILY = rosbags_family()
+S = np.linspace(-10, 10, 41)
+
+
+def _line(y):
+    return np.stack([S, np.full_like(S, y), np.full_like(S, -1.8)], 1)
+
+
+class FixedLanes:
+    """A detector that sees the same lanes in every window frame."""
+
+    def __init__(self, lanes, confidences):
+        self.lanes, self.confidences, self.windows = lanes, np.asarray(confidences), []
+
+    def __call__(self, window):
+        self.windows.append(window)
+        return self.lanes, self.confidences
+
+
+def _cloud(stamp_ns, frame='lidar', n=200):
+    rng = np.random.default_rng(stamp_ns % 1000)
+    points = np.zeros(n, dtype=[('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('intensity', '<f4')])
+    points['x'], points['y'] = rng.uniform(-10, 10, n), rng.uniform(-10, 10, n)
+    points['z'], points['intensity'] = -1.8, rng.uniform(0, 1, n)
+    return create_cloud(FAMILY.cls('sensor_msgs/msg/PointCloud2'),
+                        FAMILY.header(stamp_ns, frame), points)
+
+
+def _odom(stamp_ns, pose, child='lidar'):
+    return make_odometry(FAMILY, FAMILY.header(stamp_ns, 'odom'), child, pose)
+
+
+def test_pose_buffer_interpolates_holds_briefly_and_refuses_gaps():
+    buffer = PoseBuffer()
+    buffer.add(2_000_000_000, euler_to_matrix(10, 0, 0, 0, 0, 0))
+    buffer.add(1_000_000_000, euler_to_matrix(0, 0, 0, 0, 0, 0))  # out of order is fine
+    np.testing.assert_allclose(buffer.at(1_500_000_000)[:3, 3], [5, 0, 0])
+    np.testing.assert_allclose(buffer.at(2_100_000_000)[:3, 3], [10, 0, 0])
+    assert buffer.at(2_300_000_000) is None
+    assert buffer.at(900_000_000) is None
+
+
+def test_lane_ids_survive_small_motion_and_new_lanes_get_new_ids():
+    tracker = LaneIdTracker()
+    first = tracker.assign([_line(1.8), _line(-1.7)])
+    second = tracker.assign([_line(-1.6), _line(5.3), _line(1.9)])
+    assert second[0] == first[1] and second[2] == first[0]
+    assert second[1] not in first
+
+
+def test_ego_lane_bounds_pick_the_nearest_line_each_side():
+    lanes = [_line(5.3), _line(1.8), _line(-1.7), _line(-5.2)]
+    assert ego_lane_bounds(lanes) == (1, 2)
+    far = [np.stack([S + 30, np.full_like(S, 1.0), S * 0], 1)]
+    assert ego_lane_bounds(far) == (None, None)
+
+
+def test_lanes_come_out_in_the_odometry_frame_with_the_window_outline():
+    detector = FixedLanes([_line(1.8), _line(-1.7), _line(4.0)], [0.9, 0.8, 0.2])
+    pipeline = LanePipeline(DetectorParams(size_px=256, resolution_m=0.1), detector)
+    pose = euler_to_matrix(100.0, 50.0, 2.0, 0, 0, np.pi / 2)
+    pipeline.add_odometry(_odom(1_000_000_000, pose))
+    timings = pipeline.add_cloud(_cloud(1_000_000_000))
+    assert set(timings) == {'decode_ms', 'grid_insert_ms'}
+    out = pipeline.detect()
+    assert out.frame_id == 'odom' and out.stamp_ns == 1_000_000_000
+    assert len(out.lanes) == 2  # the 0.2 lane is under score_threshold 0.5
+    # window x (forward) is odom +y after a 90 deg yaw; window y=1.8 is odom x = 100 - 1.8
+    np.testing.assert_allclose(out.lanes[0][:, 0], 100 - 1.8, atol=1e-6)
+    np.testing.assert_allclose(out.lanes[0][:, 1], 50 + S, atol=1e-6)
+    np.testing.assert_allclose(out.outline[0], out.outline[4])
+    assert np.abs(out.outline[:4, :2] - [100, 50]).max() == pytest.approx(12.8)
+    assert out.ego_left is out.lanes[0] and out.ego_right is out.lanes[1]
+    assert pipeline.detect() is None  # nothing new since the last cycle
+
+
+def test_cloud_in_another_frame_uses_the_static_extrinsic():
+    detector = FixedLanes([], [])
+    params = DetectorParams(size_px=64, resolution_m=0.5, lidar_to_base=(1.0, 0, 2.0, 0, 0, 0))
+    pipeline = LanePipeline(params, detector)
+    pipeline.add_odometry(_odom(0, euler_to_matrix(10, 0, 0, 0, 0, 0), child='base_link'))
+    pipeline.add_cloud(_cloud(0, frame='lidar'))
+    out = pipeline.detect()
+    np.testing.assert_allclose(detector.windows[0].window_to_output[:3, 3], [11, 0, 2])
+    assert out.frame_id == 'odom'
+
+
+def test_without_odometry_each_sweep_stands_alone_in_the_cloud_frame():
+    detector = FixedLanes([_line(1.8)], [0.9])
+    pipeline = LanePipeline(DetectorParams(size_px=64, resolution_m=0.5), detector)
+    for k in range(3):
+        pipeline.add_cloud(_cloud(k * 100_000_000, frame='os_lidar'))
+    assert len(pipeline.grid) == 1
+    out = pipeline.detect()
+    assert out.frame_id == 'os_lidar'
+    np.testing.assert_allclose(out.lanes[0], _line(1.8), atol=1e-6)
+
+
+def test_a_cloud_without_odometry_coverage_is_refused_by_name():
+    pipeline = LanePipeline(DetectorParams(size_px=64, resolution_m=0.5), FixedLanes([], []))
+    pipeline.add_odometry(_odom(5_000_000_000, np.eye(4)))
+    with pytest.raises(ValueError, match='no odometry around cloud stamp 1.000 s'):
+        pipeline.add_cloud(_cloud(1_000_000_000))
