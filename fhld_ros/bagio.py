@@ -21,12 +21,16 @@ class BagError(CliError, ValueError):
 
 
 def _open_reader(path: str | Path) -> Any:
+    """A rosbags reader: rosbag2 for a bag directory (whatever its name), else AnyReader."""
     from rosbags.highlevel import AnyReader
+    from rosbags.rosbag2 import Reader
     path = Path(path)
     if not path.exists():
         raise BagError(f'bag {path} does not exist')
     try:
-        reader = AnyReader([path], default_typestore=rosbags_family().typestore)
+        # AnyReader takes any path ending in .bag for a ROS 1 bag, even a rosbag2 directory
+        reader = Reader(path) if path.is_dir() else AnyReader(
+            [path], default_typestore=rosbags_family().typestore)
         reader.open()
     except Exception as exc:  # rosbags raises several types for corrupt/unknown bags
         raise BagError(f'cannot read bag {path}: {exc}') from exc
@@ -54,9 +58,9 @@ def topic_counts(path: str | Path) -> dict[str, int]:
         reader.close()
 
 
-def read_messages(path: str | Path,
-                  topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, Any]]:
-    """(topic, log time ns, deserialised message) in time order.
+def read_raw(path: str | Path,
+             topics: Iterable[str] | None = None) -> Iterator[tuple[str, str, int, bytes]]:
+    """(topic, message type, log time ns, CDR bytes) in time order, without decoding.
 
     Every requested topic must exist in the bag; an empty selection yields nothing.
     """
@@ -72,14 +76,22 @@ def read_messages(path: str | Path,
                                f'{", ".join(sorted(present)) or "nothing"})')
             connections = [c for c in connections if c.topic in wanted]
         for connection, stamp, raw in reader.messages(connections=connections):
-            try:
-                msg = reader.deserialize(raw, connection.msgtype)
-            except Exception as exc:
-                raise BagError(f'bag {path}: cannot decode a {connection.msgtype} message on '
-                               f'{connection.topic} at {stamp} ns: {exc}') from exc
-            yield connection.topic, stamp, msg
+            yield connection.topic, connection.msgtype, stamp, raw
     finally:
         reader.close()
+
+
+def read_messages(path: str | Path,
+                  topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, Any]]:
+    """(topic, log time ns, deserialised rosbags message) in time order."""
+    typestore = rosbags_family().typestore
+    for topic, msgtype, stamp, raw in read_raw(path, topics):
+        try:
+            msg = typestore.deserialize_cdr(raw, msgtype)
+        except Exception as exc:
+            raise BagError(f'bag {path}: cannot decode a {msgtype} message on {topic} at '
+                           f'{stamp} ns: {exc}') from exc
+        yield topic, stamp, msg
 
 
 class BagWriter:

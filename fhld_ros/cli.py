@@ -15,8 +15,10 @@ from fhld_ros.errors import CliError
 COMMANDS: dict[str, tuple[str, str]] = {
     'bench': ('fhld_ros.bench', 'time the pipeline stages on this machine (medians)'),
     'replay': ('fhld_ros.replay', 'run the detector pipeline over a bag on bag time'),
+    'play': ('fhld_ros.play', 'publish a bag over DDS in real time with /clock'),
     'eval': ('fhld_ros.evaluate',
              'score predicted /lanes against /lanes_gt (FHLD point metric, ONCE-3DLanes metric)'),
+    'simulate': ('fhld_ros.data.simulate', 'write a simulated road scene as a rosbag2 MCAP bag'),
 }
 
 __all__ = ['COMMANDS', 'CliError', 'build_parser', 'main']

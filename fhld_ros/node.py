@@ -50,6 +50,7 @@ def make_node():
     from nav_msgs.msg import Odometry, Path
     from rcl_interfaces.msg import ParameterDescriptor
     from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+    from rclpy.clock import Clock, ClockType
     from rclpy.node import Node
     from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
     from sensor_msgs.msg import PointCloud2
@@ -92,10 +93,14 @@ def make_node():
             self.left_pub = self.create_publisher(Path, f'{p.lanes_topic}/ego_left', out_qos)
             self.right_pub = self.create_publisher(Path, f'{p.lanes_topic}/ego_right', out_qos)
             self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', out_qos)
+            # Detection follows ROS time (sim time for bags); housekeeping follows the wall, so
+            # diagnostics keep coming when a bag stops.
             self.create_timer(1.0 / p.rate_hz, self.on_timer, callback_group=detection)
-            self.create_timer(1.0, self.publish_diagnostics, callback_group=detection)
+            wall = Clock(clock_type=ClockType.STEADY_TIME)
+            self.create_timer(1.0, self.publish_diagnostics, callback_group=detection, clock=wall)
             if p.input_reliability == 'auto':
-                self.create_timer(QOS_CHECK_SEC, self.match_publisher_qos, callback_group=inputs)
+                self.create_timer(QOS_CHECK_SEC, self.match_publisher_qos, callback_group=inputs,
+                                  clock=wall)
 
         def _declare_parameters(self) -> DetectorParams:
             defaults, values = DetectorParams(), {}

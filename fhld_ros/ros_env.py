@@ -25,7 +25,8 @@ def loopback_dds_env(domain_id: int | None = None, base: dict | None = None) -> 
     env = dict(os.environ if base is None else base)
     env['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(loopback_profile())
     env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    env['ROS_LOCALHOST_ONLY'] = '1'  # honoured by older distros; Jazzy uses the range above
+    # ROS_LOCALHOST_ONLY is deprecated in Jazzy and, when set, makes rcl ignore the range above
+    env.pop('ROS_LOCALHOST_ONLY', None)
     env['RMW_IMPLEMENTATION'] = env.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
     env['ROS_DOMAIN_ID'] = str(random.randint(1, 100) if domain_id is None else domain_id)
     return env
