@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 PYTEST_ARGS ?=
 
-.PHONY: venv test lint bench clean
+.PHONY: venv test demo lint bench clean
 
 venv: $(STAMP)
 
@@ -23,6 +23,10 @@ lint: venv
 
 test: venv lint
 	$(VENV)/bin/pytest -q -ra --durations=15 --timeout=900 $(PYTEST_ARGS)
+
+# simulate a drive, detect lanes, score them, draw out/demo/demo.png (see README)
+demo: venv
+	$(VENV)/bin/fhld demo --out out/demo
 
 bench: venv
 	$(VENV)/bin/fhld bench

@@ -20,6 +20,7 @@ SECTIONS: dict[str, str] = {
     'bev': 'fhld_ros.bev:bench_bev',
     'classical': 'fhld_ros.classical:bench_classical',
     'metrics': 'fhld_ros.metrics:bench_metrics',
+    'model': 'fhld_ros.model.detector:bench_model',
     'simulator': 'fhld_ros.data.simulator:bench_simulator',
 }
 

@@ -16,9 +16,12 @@ COMMANDS: dict[str, tuple[str, str]] = {
     'bench': ('fhld_ros.bench', 'time the pipeline stages on this machine (medians)'),
     'replay': ('fhld_ros.replay', 'run the detector pipeline over a bag on bag time'),
     'play': ('fhld_ros.play', 'publish a bag over DDS in real time with /clock'),
+    'demo': ('fhld_ros.demo', 'simulate a drive, detect lanes, score them and draw a picture'),
     'eval': ('fhld_ros.evaluate',
              'score predicted /lanes against /lanes_gt (FHLD point metric, ONCE-3DLanes metric)'),
     'simulate': ('fhld_ros.data.simulate', 'write a simulated road scene as a rosbag2 MCAP bag'),
+    'testset': ('fhld_ros.testset', 'score detectors on the fixed held-out simulated test set'),
+    'train': ('fhld_ros.train', 'train the FHLD detector on cached simulator windows'),
 }
 
 __all__ = ['COMMANDS', 'CliError', 'build_parser', 'main']

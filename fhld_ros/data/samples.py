@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from fhld_ros.bev import BevSpec
+    from fhld_ros.bev import BevSpec, BevWindow
     from fhld_ros.data.simulator import Simulator
 
 
@@ -23,6 +23,7 @@ class TrainingSample:
     lanes: list[np.ndarray]  # (K, 3) polylines in the window frame, inside the window
     window_to_odom: np.ndarray  # (4, 4) window frame in the reported odom frame
     meta: dict = field(default_factory=dict)
+    window: BevWindow | None = None  # the node's window (points too), with keep_window=True
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -94,13 +95,15 @@ def _yaw_frame(pose: np.ndarray) -> np.ndarray:
 
 
 def training_samples(sim: Simulator, n: int | None = None, sweeps_per_sample: int = 10,
-                     stride: int | None = None, spec: BevSpec | None = None
-                     ) -> Iterator[TrainingSample]:
+                     stride: int | None = None, spec: BevSpec | None = None,
+                     keep_window: bool = False) -> Iterator[TrainingSample]:
     """Up to n samples (default: as many as the run allows), one every `stride` sweeps
     (default sweeps_per_sample), each accumulating the last sweeps_per_sample sweeps (1 s).
 
     GT is placed with the true pose of the newest sweep, so with odometry drift the target
     stays what the newest sweep shows while older sweeps smear as they would on the car.
+    keep_window=True also hands over the BevWindow (its accumulated points feed detectors that
+    work on points, such as the classical baseline); it keeps the window's sweeps alive.
     """
     from fhld_ros.bev import BevSpec, RollingBevGrid
     from msg_adapters.family import rosbags_family
@@ -130,7 +133,8 @@ def training_samples(sim: Simulator, n: int | None = None, sweeps_per_sample: in
         meta = {'seed': sim.seed, 'sweep': k, 'stamp_ns': sweep.stamp_ns,
                 'road_class': sim.scene.road_class, 'sensor': sim.config.sensor,
                 'sweeps': len(grid), 'line_ids': src}
-        yield TrainingSample(window.raster, lanes, window.window_to_output, meta)
+        yield TrainingSample(window.raster, lanes, window.window_to_output, meta,
+                             window if keep_window else None)
         made += 1
         if n is not None and made >= n:
             return

@@ -1,0 +1,113 @@
+"""FhldConfig: every hyper-parameter of the detector and its losses, stored in checkpoints.
+
+Coordinates inside the model ("normalised"): u = (x + L/2) / L, v = (y + L/2) / L with L the
+window length (size_px * resolution_m), so u, v are in [0, 1] over the window; z stays in metres.
+u runs along the raster width (ix), v along its height (iy), as in the BEV raster.
+Pixel quantities (cell size r, anchor noise) are in raster pixels of the configured raster.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+from typing import Any
+
+# Fields added after checkpoints existed, with the value those checkpoints were built with.
+_LEGACY_DEFAULTS: dict[str, Any] = {'stem_kernel': 7}
+
+
+@dataclass(frozen=True)
+class FhldConfig:
+    # Raster the checkpoint expects (fhld_ros/bev.py): 640 px at 4 cm = 25.6 m window.
+    size_px: int = 640
+    resolution_m: float = 0.04
+    in_channels: int = 4
+
+    # Backbone: slim ResNet-18 (paper widths) + self-attention on the stride-32 map.
+    widths: tuple[int, ...] = (16, 32, 64, 128)
+    blocks_per_stage: int = 2
+    stem_kernel: int = 3              # stem conv k x k, stride 2, + max-pool; ResNet: 7 (+9 ms)
+    backbone_attention_layers: int = 1
+
+    # Global branch (DETR-like); the authors' release uses d=128, 4 heads, 3 + 3 layers.
+    d_model: int = 128
+    n_heads: int = 4
+    ffn_dim: int = 256
+    enc_layers: int = 3
+    dec_layers: int = 3
+    dropout: float = 0.0
+    num_queries: int = 15
+
+    # Local branch: features F'' at local_stride, RoIAlign roi_size x roi_size bins per cell.
+    local_stride: int = 8
+    local_channels: int = 32
+    roi_size: int = 4
+    roi_sampling: int = 1             # 1 = torchvision adaptive for r = 4 cells of stride 8
+    local_hidden: int = 128
+
+    # Anchor cells: r x r px, B cells per matched lane when training (paper: r=32, B=40).
+    cell_px: int = 32
+    cells_per_lane: int = 40
+    negative_ratio: float = 0.25      # negatives sampled around positives, per positive
+    noise_px: float = 4.0             # std of the position noise on positive anchors
+    infer_spacing_px: float = 24.0    # inference: base spacing of cells along a curve
+    curvature_ref: float = 0.05       # 1/m; curvature that doubles the inference density
+    infer_min_cells: int = 4
+    infer_max_cells: int = 60
+    min_segment_frac: float = 0.2     # a cell is positive if its GT segment is >= this * r
+    bar_width_m: float = 0.15         # w_l; the Gaussian uses 2 * w_l across the segment
+    local_score_threshold: float = 0.5
+
+    # Ablation flags (paper Table 2) and training switches.
+    adaptive_axis: bool = True        # False: cubic w.r.t. the window x axis
+    shape_matching: bool = True       # False: L1 point regression of the segment centre
+    smoothness_loss: bool = True      # L_sm on second differences
+    anchor_noise: bool = True         # position noise on training anchors
+    anchors_on_gt: bool = False       # training anchors along GT instead of predicted curves
+
+    # Losses: lambda1 (classification), lambda2 (KL), lambda3 (smoothness).
+    lambda1: float = 1.0
+    lambda2: float = 1.0
+    lambda3: float = 0.5
+    no_lane_weight: float = 1.0       # CE weight of the non-lane class
+    z_weight: float = 1.0             # weight of height errors relative to ground-plane ones
+    lsm_warmup: int = 2000            # iterations before L_LSM is optimised
+    aux_loss: bool = True             # supervise every decoder layer
+    match_class_weight: float = 1.0
+    match_terminal_weight: float = 1.0
+    gt_points: int = 100              # GT lanes are resampled to this many points
+
+    @property
+    def window_m(self) -> float:
+        return self.size_px * self.resolution_m
+
+    @property
+    def z_scale(self) -> float:
+        """Factor taking z (m) to normalised units in distances: z_weight / L."""
+        return self.z_weight / self.window_m
+
+    @property
+    def cell_norm(self) -> float:
+        """Cell side r in normalised units."""
+        return self.cell_px / self.size_px
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain types only (lists, not tuples), so torch.load(weights_only=True) accepts it."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> FhldConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f'unknown config fields: {", ".join(unknown)}')
+        data = {**_LEGACY_DEFAULTS, **data}
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
+
+    def validate(self) -> None:
+        if self.size_px % 32:
+            raise ValueError(f'size_px must be a multiple of 32, got {self.size_px}')
+        if self.local_stride not in (4, 8, 16, 32):
+            raise ValueError(f'local_stride must be 4, 8, 16 or 32, got {self.local_stride}')
+        if len(self.widths) != 4:
+            raise ValueError(f'widths must have 4 stages, got {self.widths}')
+        if self.d_model % self.n_heads:
+            raise ValueError('d_model must be divisible by n_heads')

@@ -1,0 +1,149 @@
+"""FhldDetector: backbone -> global curves -> dynamic anchor cells -> local segments.
+
+Training: ``outputs = model(raster, targets=targets)``; the last decoder layer is matched to
+the GT inside forward so the anchor cells can follow the matched predicted curves; the matches,
+prepared GT, anchors and local predictions are returned for the criterion (losses.py).
+Inference: ``model.detect(raster, score_threshold)`` -> one Detections per batch item, lanes as
+ordered (K, 3) point sequences in window-frame metres. No NMS: one query is one lane.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from fhld_ros.matcher import HungarianMatcher
+from fhld_ros.model.anchors import inference_anchors, training_anchors
+from fhld_ros.model.backbone import SlimResNet
+from fhld_ros.model.config import FhldConfig
+from fhld_ros.model.global_branch import GlobalBranch
+from fhld_ros.model.local_branch import LocalFeatures, LocalHead
+from fhld_ros.model.targets import LaneTargets, prepare_targets, to_metres
+
+
+@dataclass
+class Detections:
+    lanes: list[np.ndarray] = field(default_factory=list)  # (K, 3) window-frame m, ordered
+    confidences: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    curves: list[np.ndarray] = field(default_factory=list)  # the global curves, sampled
+
+
+class FhldDetector(nn.Module):
+    def __init__(self, cfg: FhldConfig | None = None) -> None:
+        super().__init__()
+        self.cfg = cfg = cfg or FhldConfig()
+        cfg.validate()
+        self.backbone = SlimResNet(cfg.in_channels, cfg.widths, cfg.blocks_per_stage,
+                                   cfg.backbone_attention_layers, cfg.n_heads, cfg.stem_kernel)
+        self.global_branch = GlobalBranch(cfg)
+        self.local_features = LocalFeatures(cfg)
+        self.local_head = LocalHead(cfg)
+        self.curve_model = self.global_branch.curve_model
+        self.matcher = HungarianMatcher(cfg.match_class_weight, cfg.match_terminal_weight,
+                                        cfg.z_scale)
+        # mkldnn convolutions are several times faster on channels-last tensors on CPU.
+        self.to(memory_format=torch.channels_last)
+
+    def check_input(self, raster: Tensor) -> None:
+        cfg = self.cfg
+        expected = (cfg.in_channels, cfg.size_px, cfg.size_px)
+        if raster.ndim != 4 or tuple(raster.shape[1:]) != expected:
+            raise ValueError(f'raster must be (B, {", ".join(map(str, expected))}), '
+                             f'got {tuple(raster.shape)}')
+
+    def features(self, raster: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        self.check_input(raster)
+        feats = self.backbone(raster.contiguous(memory_format=torch.channels_last))
+        logits, curves = self.global_branch(feats[32])
+        return logits, curves, self.local_features(feats)
+
+    def forward(self, raster: Tensor,
+                targets: Sequence[Sequence[np.ndarray]] | LaneTargets | None = None,
+                anchors_on_gt: bool | None = None) -> dict:
+        """Raw outputs; with targets also matches, anchors and local predictions.
+
+        logits (B, N, 2) and curves (B, N, 12) of the last decoder layer; aux_logits and
+        aux_curves hold the earlier layers.
+        """
+        logits, curves, local_map = self.features(raster)
+        out = {'logits': logits[-1], 'curves': curves[-1],
+               'aux_logits': list(logits[:-1]), 'aux_curves': list(curves[:-1])}
+        if targets is None:
+            return out
+        gt = prepare_targets(targets, self.cfg, raster.device)
+        matches = self.matcher(out['logits'], out['curves'], gt)
+        on_gt = self.cfg.anchors_on_gt if anchors_on_gt is None else anchors_on_gt
+        positive, negative = training_anchors(out['curves'], matches, gt, self.cfg,
+                                              self.curve_model, on_gt=on_gt)
+        out.update(gt=gt, matches=matches,
+                   anchors={'positive': positive, 'negative': negative},
+                   local={'positive': self.local_head(local_map, positive),
+                          'negative': self.local_head(local_map, negative)})
+        return out
+
+    @torch.inference_mode()
+    def detect(self, raster: Tensor, score_threshold: float = 0.5,
+               curve_points: int = 0) -> list[Detections]:
+        """Lanes per batch item. curve_points > 0 also samples each global curve."""
+        was_training = self.training
+        self.eval()
+        try:
+            logits, curves, local_map = self.features(raster)
+        finally:
+            self.train(was_training)
+        cfg = self.cfg
+        prob = logits[-1].softmax(-1)[..., 1]
+        batch, query = (prob >= score_threshold).nonzero(as_tuple=True)
+        params = curves[-1][batch, query]
+        anchors = inference_anchors(params, batch, query, cfg, self.curve_model)
+        local = self.local_head(local_map, anchors)
+        keep = anchors.valid & (local.logits.sigmoid() >= cfg.local_score_threshold)
+        keep &= ((local.centre >= 0) & (local.centre <= 1)).all(-1)
+        points = torch.cat([local.centre, local.z.unsqueeze(-1)], -1).cpu().numpy()
+        keep_np, batch_np = keep.cpu().numpy(), batch.cpu().numpy()
+        conf_np = prob[batch, query].cpu().numpy()
+        if curve_points:
+            t = torch.linspace(0, 1, curve_points, device=params.device)
+            sampled = self.curve_model.evaluate(params, t.expand(len(params), -1)).cpu().numpy()
+        results = [Detections() for _ in range(raster.shape[0])]
+        for i, item in enumerate(batch_np):  # one iteration per detected lane
+            lane = points[i][keep_np[i]]
+            if len(lane) < 2:
+                continue
+            det = results[item]
+            det.lanes.append(to_metres(lane, cfg.window_m))
+            det.confidences = np.append(det.confidences, conf_np[i])
+            if curve_points:
+                det.curves.append(to_metres(sampled[i], cfg.window_m))
+        return results
+
+
+def build_default_detector() -> FhldDetector:
+    """The shipped weights when present, else a randomly initialised default model."""
+    from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint
+
+    if DEFAULT_CHECKPOINT.exists():
+        return load_checkpoint(DEFAULT_CHECKPOINT).model
+    with torch.random.fork_rng():  # reproducible weights without touching the caller's RNG
+        torch.manual_seed(0)
+        return FhldDetector(FhldConfig())
+
+
+def bench_model() -> dict[str, float]:
+    """`fhld bench model`: detector forward + detect post-processing, 640 x 640, batch 1."""
+    from fhld_ros.bench import time_median
+
+    model = build_default_detector().eval()
+    cfg = model.cfg
+    gen = torch.Generator().manual_seed(0)
+    raster = torch.rand(1, cfg.in_channels, cfg.size_px, cfg.size_px, generator=gen)
+    raster[:, :, ::3] = 0  # sparse-ish, like a real BEV raster
+    with torch.inference_mode():
+        prob = model(raster)['logits'].softmax(-1)[0, :, 1]
+    # Post-processing cost grows with the lanes found: time it with 8, the most a window holds.
+    threshold = float(prob.topk(min(8, len(prob))).values[-1])
+    return {'model_ms': time_median(lambda: model.detect(raster, threshold), repeats=20,
+                                    warmup=3)}

@@ -1,0 +1,263 @@
+"""Training infrastructure: window cache, dataset + augmentation, `fhld train` (resume, DDP)."""
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from fhld_ros.bev import EMPTY_MIN_HEIGHT, BevSpec
+from fhld_ros.cli import main as fhld
+from fhld_ros.data.cache import (ALL_SENSORS, ALL_TOPOLOGIES, CacheSettings, build_cache,
+                                 read_meta, scenario_for_seed, shard_path)
+from fhld_ros.data.dataset import (CacheDataset, Similarity, augment, centre_crop, collate,
+                                   warp_lanes, warp_raster, warp_rasters)
+from fhld_ros.data.simulator import Simulator
+
+REPO = Path(__file__).resolve().parent.parent
+RES = 0.2  # tiny rasters: 128 px (160 px cached for training) at 20 cm
+TINY = CacheSettings(windows_per_seed=2, size_px=160, resolution_m=RES, sweeps_per_sample=2,
+                     stride=2, sensors=('vlp16',))
+TRAIN_SEEDS = (0, 2)
+TEST_SEED = 1_000_000
+MODEL = dict(size_px=128, resolution_m=RES, widths=[8, 16, 32, 64], d_model=64, ffn_dim=128,
+             enc_layers=1, dec_layers=2, num_queries=6, cell_px=8, cells_per_lane=16,
+             noise_px=1.0, infer_spacing_px=6.0, local_channels=16, local_hidden=64,
+             lsm_warmup=1)
+
+
+@pytest.fixture(scope='module', autouse=True)
+def one_torch_thread():
+    """Tiny models: a second OpenMP thread only waits for a core on this shared machine."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope='module')
+def caches(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp('cache')
+    # the training cache through the spawned worker pool, the test cache inline
+    report = build_cache(root / 'train', range(*TRAIN_SEEDS), TINY, workers=2, progress=False)
+    assert sorted(report.built) == [0, 1] and report.windows == 4 and report.complete
+    test = CacheSettings(**{**TINY.__dict__, 'size_px': 128})
+    build_cache(root / 'test', [TEST_SEED], test, workers=1, progress=False)
+    return root
+
+
+def write_config(path: Path, caches: Path, **train) -> Path:
+    cfg = {'seed': 3, 'model': MODEL,
+           'data': {'train_cache': str(caches / 'train'), 'test_cache': str(caches / 'test'),
+                    'train_seeds': list(TRAIN_SEEDS), 'test_seeds': [TEST_SEED, TEST_SEED + 1],
+                    'train_windows_per_seed': 2, 'test_windows_per_seed': 2,
+                    'train_size_px': 160, 'sweeps_per_sample': 2, 'stride': 2,
+                    'sensors': ['vlp16'], 'cache_workers': 1},
+           'train': {'iterations': 3, 'batch_size': 2, 'eval_every': 100, 'ckpt_every': 100,
+                     'log_every': 1, 'eval_windows': 1, 'eval_batch_size': 1, **train}}
+    path.write_text(json.dumps(cfg))  # JSON is YAML
+    return path
+
+
+# --- (a) cache ----------------------------------------------------------------------------
+
+def test_cache_round_trip_matches_the_simulator(caches):
+    meta = read_meta(shard_path(caches / 'train', 1))
+    assert meta['seed'] == 1 and meta['windows'] == 2 and meta['size_px'] == 160
+    assert meta['scenario'] == scenario_for_seed(1, TINY)
+    data = CacheDataset(caches / 'train')
+    assert len(data) == 4 and data.size_px == 160 and data.resolution_m == RES
+    sim = Simulator(1, sweeps=TINY.sweeps_per_seed, **meta['scenario'])
+    samples = list(sim.training_samples(2, sweeps_per_sample=2, stride=2,
+                                        spec=BevSpec(160, RES)))
+    for k, sample in enumerate(samples):
+        item = data[2 + k]
+        assert (item['seed'], item['window']) == (1, k)
+        np.testing.assert_allclose(item['raster'].numpy(), sample.raster, atol=1e-3)
+        assert len(item['lanes']) == len(sample.lanes)
+        for got, want in zip(item['lanes'], sample.lanes):
+            np.testing.assert_allclose(got, want, atol=1e-5)
+    batch = collate([data[0], data[3]])
+    assert batch['raster'].shape == (2, 4, 160, 160) and len(batch['lanes']) == 2
+    # centre crop to the model's 128 px, as for evaluation
+    crop = CacheDataset(caches / 'train', out_size=128)[3]
+    assert crop['raster'].shape == (4, 128, 128)
+    assert all(np.abs(lane[:, :2]).max() <= 128 * RES / 2 + 1e-9 for lane in crop['lanes'])
+
+
+def test_cache_build_resumes_and_refuses_other_settings(caches):
+    again = build_cache(caches / 'train', range(*TRAIN_SEEDS), TINY, workers=2, progress=False)
+    assert again.built == [] and sorted(again.skipped) == [0, 1]
+    assert not list((caches / 'train').glob('.*tmp*'))  # atomic writes leave nothing behind
+    other = CacheSettings(**{**TINY.__dict__, 'windows_per_seed': 3})
+    with pytest.raises(ValueError, match='other settings'):
+        build_cache(caches / 'train', [5], other, workers=1, progress=False)
+
+
+def test_scenarios_cover_every_sensor_and_topology():
+    settings = CacheSettings()
+    pairs = {(s['sensor'], s['topology'])
+             for s in (scenario_for_seed(k, settings) for k in range(56))}
+    assert len(pairs) == len(ALL_SENSORS) * len(ALL_TOPOLOGIES) == 56
+    test_split = [scenario_for_seed(1_000_000 + k, settings) for k in range(8)]
+    assert {s['sensor'] for s in test_split} == set(ALL_SENSORS)
+    assert {s['topology'] for s in test_split} == set(ALL_TOPOLOGIES)
+
+
+# --- (b) augmentation -----------------------------------------------------------------------
+
+def painted(size: int, res: float) -> tuple[torch.Tensor, list[np.ndarray]]:
+    """An empty raster with two bright curved lines painted densely, and their polylines."""
+    half = size * res / 2
+    x = np.linspace(-half, half, 4000)
+    lanes = [np.stack([x, y0 + 0.004 * x ** 2 + 0.1 * x, 0.01 * x - 1.8], 1)
+             for y0 in (-3.0, 2.5)]
+    raster = torch.zeros(4, size, size)
+    raster[3] = EMPTY_MIN_HEIGHT
+    spec = BevSpec(size, res)
+    for lane in lanes:
+        col, row = np.floor(spec.world_to_pixel(lane)).astype(int).T
+        ok = (col >= 0) & (col < size) & (row >= 0) & (row < size)
+        raster[:, row[ok], col[ok]] = torch.tensor([1.0, 0.5, 0.2, 0.3])[:, None]
+    return raster, lanes
+
+
+def test_identity_flip_and_crop_are_exact():
+    raster, lanes = painted(160, RES)
+    for transform, want in ((Similarity(), raster), (Similarity(flip=True), raster.flip(-2))):
+        got = warp_raster(raster, transform, 160, RES)
+        assert torch.equal(got[1] > 0, want[1] > 0)
+        torch.testing.assert_close(got, want, atol=1e-6, rtol=0)  # float32 grid coordinates
+    flipped = warp_lanes(lanes, Similarity(flip=True), 160, RES)
+    mirrored = warp_lanes([lane * [1, -1, 1] for lane in lanes], Similarity(), 160, RES)
+    for a, b in zip(flipped, mirrored, strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-12)
+    crop, crop_lanes = centre_crop(raster, lanes, 128, RES)
+    torch.testing.assert_close(warp_raster(raster, Similarity(), 128, RES), crop, atol=1e-6,
+                               rtol=0)
+    assert torch.equal(crop, raster[:, 16:144, 16:144]) and len(crop_lanes) == 2
+    np.testing.assert_allclose(Similarity(angle=math.pi / 2).apply(np.array([[1.0, 0, 5]])),
+                               [[0.0, 1.0, 5.0]], atol=1e-12)
+
+
+@pytest.mark.parametrize('seed', range(6))
+def test_augmented_lanes_land_on_the_painted_pixels(seed):
+    raster, lanes = painted(160, RES)
+    rng = np.random.default_rng(seed)
+    from fhld_ros.data.dataset import AugmentParams
+    params = AugmentParams(shift_m=2.0, rotate_deg=25.0, flip_prob=0.5, scale_min=0.8,
+                           scale_max=1.2)
+    out, out_lanes = augment(raster, lanes, rng, params, out_size=128, resolution_m=RES)
+    assert out.shape == (4, 128, 128) and len(out_lanes) >= 2
+    occupied = out[1] > 0
+    # empty cells stay exactly empty; occupied cells keep exactly the painted values (no
+    # blending with empty neighbours)
+    assert torch.all(out[:3, ~occupied] == 0)
+    assert torch.all(out[3, ~occupied] == EMPTY_MIN_HEIGHT)
+    values = out[:, occupied]
+    torch.testing.assert_close(values, torch.tensor([1.0, 0.5, 0.2, 0.3])[:, None].expand_as(
+        values))
+    # GT -> pixels: (almost) every GT sample falls on a bright pixel or right next to it
+    spec = BevSpec(128, RES)
+    pts = np.concatenate(out_lanes)
+    col, row = np.clip(np.floor(spec.world_to_pixel(pts)).astype(int), 0, 127).T  # edge: 128
+    near = torch.nn.functional.max_pool2d(occupied[None, None].float(), 3, 1, 1)[0, 0] > 0
+    assert near.numpy()[row, col].mean() > 0.97
+    # and every bright pixel lies on a transformed GT lane (within 1.5 px)
+    rows, cols = np.nonzero(occupied.numpy())
+    centres = spec.pixel_to_world(np.stack([cols, rows], 1) + 0.5)
+    dense = np.concatenate([np.linspace(a[:2], b[:2], 20) for lane in out_lanes
+                            for a, b in zip(lane[:-1], lane[1:])])
+    from scipy.spatial import cKDTree
+    dist, _ = cKDTree(dense).query(centres)
+    assert dist.max() < 1.5 * RES * 1.25  # sqrt(2) source px, times the largest scale
+    assert all(np.abs(lane[:, :2]).max() < 128 * RES / 2 + 1e-9 for lane in out_lanes)
+
+
+def test_dataset_augmentation_is_keyed_by_seed_epoch_index(caches):
+    from fhld_ros.data.dataset import AugmentParams
+    data = CacheDataset(caches / 'train', out_size=128, augment=AugmentParams(), seed=1)
+    items = [data[1], data[2]]  # seed 0 window 1, seed 1 window 0
+    assert items[0]['raster'].shape == (4, 128, 128)
+    assert torch.equal(items[1]['raster'], data[2]['raster'])
+    data.set_epoch(1)
+    assert not torch.equal(items[1]['raster'], data[2]['raster'])
+    # the GPU path: raw float16 windows + thetas, warped per batch, give the same items
+    deferred = CacheDataset(caches / 'train', out_size=128, augment=AugmentParams(), seed=1,
+                            defer_warp=True)
+    batch = collate([deferred[1], deferred[2]])
+    assert batch['raster'].dtype == torch.float16 and batch['theta'].shape == (2, 2, 3)
+    warped = warp_rasters(batch['raster'], batch['theta'], 128)
+    for k, item in enumerate(items):
+        torch.testing.assert_close(warped[k], item['raster'], atol=2e-3, rtol=0)  # float16
+        assert len(batch['lanes'][k]) == len(item['lanes'])
+        for x, y in zip(batch['lanes'][k], item['lanes']):
+            np.testing.assert_array_equal(x, y)
+    assert len(items[1]['lanes']) > 0
+
+
+# --- (c) training, checkpoints, resume --------------------------------------------------------
+
+def load_payload(path: Path) -> dict:
+    return torch.load(path, map_location='cpu', weights_only=True)
+
+
+def test_train_stops_on_budget_and_resumes_exactly(caches, tmp_path):
+    from fhld_ros.model.checkpoint import load_checkpoint
+
+    cfg = write_config(tmp_path / 'tiny.yaml', caches)
+    assert fhld(['train', '--config', str(cfg), '--out', str(tmp_path / 'a'), '--quiet']) == 0
+    straight = load_payload(tmp_path / 'a' / 'last.pt')
+    assert straight['meta']['iteration'] == 3
+    assert '--config' in straight['train_command']
+    best = load_checkpoint(tmp_path / 'a' / 'best.pt')
+    assert best.meta['train_config']['train']['iterations'] == 3
+    assert set(best.meta['eval']) >= {'P@10', 'R@10', 'F1@10', 'F1@30'}
+    log = [json.loads(line) for line in (tmp_path / 'a' / 'log.jsonl').read_text().splitlines()]
+    assert [r['iteration'] for r in log if 'loss' in r] == [1, 2, 3]
+
+    run_b = ['train', '--config', str(cfg), '--out', str(tmp_path / 'b'), '--quiet']
+    assert fhld([*run_b, '--max-minutes', '0']) == 0  # budget spent: one iteration, then stop
+    stopped = load_payload(tmp_path / 'b' / 'last.pt')
+    assert stopped['meta']['iteration'] == 1 and 'optimizer' in stopped['meta']['train_state']
+    assert fhld(run_b) == 2  # refuses to overwrite a run without --resume
+    assert fhld([*run_b, '--resume']) == 0
+    resumed = load_payload(tmp_path / 'b' / 'last.pt')
+    assert resumed['meta']['iteration'] == 3 and len(resumed['meta']['commands']) == 2
+    for key, value in straight['state_dict'].items():
+        assert torch.equal(value, resumed['state_dict'][key]), key
+
+
+def test_bad_config_is_one_clear_error(tmp_path, capsys):
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text('train: {iterations: 3, batchsize: 2}\n')
+    assert fhld(['train', '--config', str(bad)]) == 2
+    assert 'batchsize' in capsys.readouterr().err
+    bad.write_text('data: {train_seeds: [0, 10], test_seeds: [5, 20]}\n')
+    assert fhld(['train', '--config', str(bad)]) == 2
+    assert 'overlap' in capsys.readouterr().err
+
+
+# --- (d) DDP --------------------------------------------------------------------------------
+
+def test_ddp_gloo_two_processes(caches, tmp_path):
+    cfg = write_config(tmp_path / 'ddp.yaml', caches, iterations=2, batch_size=1)
+    env = {**os.environ, 'OMP_NUM_THREADS': '1', 'PYTHONPATH': str(REPO)}
+    env.pop('WORLD_SIZE', None)
+    proc = subprocess.run(
+        [sys.executable, '-m', 'torch.distributed.run', '--standalone', '--nproc-per-node=2',
+         '-m', 'fhld_ros.cli', 'train', '--config', str(cfg), '--out', str(tmp_path / 'run'),
+         '--device', 'cpu', '--quiet'],
+        env=env, cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    payload = load_payload(tmp_path / 'run' / 'last.pt')
+    meta = payload['meta']
+    assert meta['iteration'] == 2 and meta['world_size'] == 2
+    assert len(meta['train_state']['rng']) == 2
+    assert payload['train_command'].startswith('torchrun --nproc-per-node=2')
