@@ -22,6 +22,7 @@ SECTIONS: dict[str, str] = {
     'metrics': 'fhld_ros.metrics:bench_metrics',
     'model': 'fhld_ros.model.detector:bench_model',
     'simulator': 'fhld_ros.data.simulator:bench_simulator',
+    'e2e': 'fhld_ros.bench_e2e:bench_e2e',
 }
 
 

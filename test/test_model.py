@@ -14,25 +14,14 @@ from fhld_ros.model.curve import AdaptiveAxisCurve, FixedAxisCurve
 from fhld_ros.model.detector import Detections, FhldDetector
 from fhld_ros.model.roi_align import roi_align
 from fhld_ros.model.targets import prepare_targets, resample_polyline, to_metres, to_normalised
+from model_fixtures import small_config
 
 CURVES = [AdaptiveAxisCurve(), FixedAxisCurve()]
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """The 2 cores are shared: one thread is steadier than two fighting other processes."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures('one_torch_thread')
 
 
-def small_config(**overrides) -> FhldConfig:
-    """A 128 px / 0.2 m raster (same 25.6 m window) and a narrow network: fast tests."""
-    base = dict(size_px=128, resolution_m=0.2, widths=(8, 16, 32, 64), d_model=64, ffn_dim=128,
-                enc_layers=1, dec_layers=2, num_queries=6, cell_px=8, cells_per_lane=16,
-                noise_px=1.0, infer_spacing_px=6.0, local_channels=16, local_hidden=64)
-    return FhldConfig(**{**base, **overrides})
 
 
 def random_params(n: int, curve, seed: int = 0) -> torch.Tensor:

@@ -1,0 +1,102 @@
+"""`fhld bench e2e`: sweep-to-/lanes latency of the running node over real DDS (loopback).
+
+The node runs as its own process with its default parameters (the shipped FHLD weights); this
+process publishes simulated 64x1024 Ouster-like sweeps and their odometry at 10 Hz on the wall
+clock and timestamps every /lanes message on arrival. Latency = /lanes arrival - publish time
+of the newest sweep it was computed from (the message's stamp). A sweep that never becomes the
+newest sweep of a /lanes message counts as dropped. Backlog growth compares the median latency
+of the last third of the run with the first third.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+
+SECONDS = float(os.environ.get('FHLD_BENCH_E2E_SECONDS', '30'))
+DISTINCT_SWEEPS = 50  # simulated once, then replayed with fresh stamps
+RATE_HZ = 10.0
+
+
+def _sweeps(count: int) -> list:
+    from fhld_ros.data.simulator import Simulator
+    sim = Simulator(seed=5, sweeps=count, sensor='os1-64', road='highway', speed=20.0)
+    return [sim.sweep(k) for k in range(count)]
+
+
+def bench_e2e(seconds: float = SECONDS) -> dict[str, float]:
+    from fhld_ros.ros_env import loopback_dds_env
+    os.environ.update(loopback_dds_env())
+    import rclpy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    from msg_adapters.family import rclpy_family, stamp_to_ns
+    from msg_adapters.odometry import make_odometry
+    from msg_adapters.pointcloud2 import create_cloud
+
+    sweeps = _sweeps(DISTINCT_SWEEPS)
+    node = subprocess.Popen([sys.executable, '-m', 'fhld_ros.node'], env=dict(os.environ),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    family = rclpy_family()
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    bench = rclpy.create_node('fhld_bench_e2e', context=context)
+    arrivals: list[tuple[int, float]] = []
+    reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    bench.create_subscription(family.cls('visualization_msgs/msg/MarkerArray'), 'lanes',
+                              lambda m: arrivals.append((stamp_to_ns(m.markers[0].header.stamp),
+                                                         time.monotonic())), reliable)
+    points = bench.create_publisher(family.cls('sensor_msgs/msg/PointCloud2'), 'points',
+                                    reliable)
+    odom = bench.create_publisher(family.cls('nav_msgs/msg/Odometry'), 'odom', reliable)
+    executor = rclpy.executors.SingleThreadedExecutor(context=context)
+    executor.add_node(bench)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    published: dict[int, float] = {}
+    try:
+        deadline = time.monotonic() + 60
+        while points.get_subscription_count() == 0 or odom.get_subscription_count() == 0:
+            if time.monotonic() > deadline or node.poll() is not None:
+                raise RuntimeError('the lane_detector node did not come up')
+            time.sleep(0.1)
+        time.sleep(1.0)
+        start_ns, period = 1_700_000_000_000_000_000, 1.0 / RATE_HZ
+        cloud_cls = family.cls('sensor_msgs/msg/PointCloud2')
+        count = int(seconds * RATE_HZ)
+        t0 = time.monotonic()
+        for k in range(count):
+            sweep = sweeps[k % len(sweeps)]
+            stamp = start_ns + k * 100_000_000
+            header = family.header(stamp, 'lidar')
+            cloud = create_cloud(cloud_cls, header, sweep.points, height=sweep.height)
+            due = t0 + k * period
+            time.sleep(max(0.0, due - time.monotonic()))
+            odom.publish(make_odometry(family, family.header(stamp, 'odom'), 'lidar',
+                                       sweep.sensor_to_odom))
+            published[stamp] = time.monotonic()
+            points.publish(cloud)
+        time.sleep(1.5)
+    finally:
+        node.terminate()
+        node.wait(timeout=20)
+        executor.shutdown()
+        bench.destroy_node()
+        context.try_shutdown()
+    latencies = np.array([(t - published[s]) * 1e3 for s, t in arrivals if s in published])
+    if latencies.size < 3:
+        raise RuntimeError(f'only {latencies.size} /lanes messages arrived')
+    third = latencies.size // 3
+    return {
+        'e2e_latency_ms_p50': float(np.percentile(latencies, 50)),
+        'e2e_latency_ms_p95': float(np.percentile(latencies, 95)),
+        'e2e_latency_growth_ms': float(np.median(latencies[-third:])
+                                       - np.median(latencies[:third])),
+        'e2e_seconds': float(seconds), 'sweeps_published': float(len(published)),
+        'lanes_messages': float(latencies.size),
+        'sweeps_dropped': float(len(published) - len({s for s, _ in arrivals})),
+    }
