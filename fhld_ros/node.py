@@ -61,7 +61,7 @@ def make_node():
 
     from fhld_ros.detectors import make_detector
     from fhld_ros.pipeline import LanePipeline
-    from msg_adapters.family import rclpy_family
+    from msg_adapters.family import rclpy_family, stamp_to_ns
     from msg_adapters.lanes import lane_to_path, lanes_to_marker_array
 
     family = rclpy_family()
@@ -164,7 +164,7 @@ def make_node():
             try:
                 with self.lock:
                     self.pipeline.add_cloud(msg)
-                    self.received_at[self.pipeline.grid.newest_stamp_ns] = arrived
+                    self.received_at[stamp_to_ns(msg.header.stamp)] = arrived
                     if len(self.received_at) > 100:
                         self.received_at.pop(next(iter(self.received_at)))
                     no_odometry = not self.pipeline.uses_odometry

@@ -9,6 +9,7 @@ Lanes come out in the output frame (the odometry's frame, else the cloud's) with
 from __future__ import annotations
 
 import bisect
+import collections
 import time
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -24,6 +25,7 @@ from msg_adapters.pointcloud2 import read_xyzi
 
 ODOM_HISTORY = 400  # ~4 s at 100 Hz
 ODOM_HOLD_NS = 200_000_000  # a cloud up to 0.2 s newer than the newest odometry uses it as is
+MAX_PENDING = 3  # sweeps that wait for the odometry of their stamp (0.3 s at 10 Hz)
 
 
 class LaneDetector(Protocol):
@@ -150,8 +152,9 @@ class LanePipeline:
         self.ids = LaneIdTracker()
         self.output_frame: str | None = None
         self.sweeps_since_detection = 0
+        self.pending: collections.deque[tuple] = collections.deque()
         self.counters = {'clouds': 0, 'odometry': 0, 'detections': 0, 'sweeps_skipped': 0,
-                         'resets': 0}
+                         'resets': 0, 'clouds_without_odometry': 0}
 
     @property
     def uses_odometry(self) -> bool:
@@ -161,6 +164,12 @@ class LanePipeline:
         self.odom_frame, self.odom_child = str(msg.header.frame_id), str(msg.child_frame_id)
         self.odometry.add(stamp_to_ns(msg.header.stamp), odometry_to_matrix(msg))
         self.counters['odometry'] += 1
+        # sweeps that arrived before the odometry of their stamp go in now, in order
+        while self.pending and self.pending[0][0] <= self.odometry.stamps[-1]:
+            try:
+                self._insert(*self.pending.popleft())
+            except ValueError:
+                self.counters['clouds_without_odometry'] += 1
 
     def sensor_pose(self, stamp_ns: int, cloud_frame: str) -> np.ndarray | None:
         """Cloud frame -> output frame at the stamp (identity without odometry)."""
@@ -172,12 +181,25 @@ class LanePipeline:
         return pose if cloud_frame == self.odom_child else pose @ self.lidar_to_base
 
     def add_cloud(self, msg: Any) -> dict[str, float]:
-        """Decode and insert one sweep. Raises ValueError (naming the problem) for bad input."""
+        """Decode and insert one sweep. Raises ValueError (naming the problem) for bad input.
+
+        A sweep newer than the newest odometry waits (up to MAX_PENDING sweeps) for the
+        odometry of its stamp, since clouds and odometry arrive on independent topics.
+        """
         start = time.perf_counter()
         xyz, intensity = read_xyzi(msg)
         decoded = time.perf_counter()
-        stamp_ns = stamp_to_ns(msg.header.stamp)
-        frame = str(msg.header.frame_id)
+        sweep = (stamp_to_ns(msg.header.stamp), str(msg.header.frame_id), xyz, intensity)
+        if self.uses_odometry and sweep[0] > self.odometry.stamps[-1]:
+            self.pending.append(sweep)
+            if len(self.pending) <= MAX_PENDING:
+                return {'decode_ms': (decoded - start) * 1e3}
+            sweep = self.pending.popleft()  # odometry is late: the oldest goes on a held pose
+        self._insert(*sweep)
+        done = time.perf_counter()
+        return {'decode_ms': (decoded - start) * 1e3, 'grid_insert_ms': (done - decoded) * 1e3}
+
+    def _insert(self, stamp_ns: int, frame: str, xyz: np.ndarray, intensity: np.ndarray) -> None:
         pose = self.sensor_pose(stamp_ns, frame)
         if pose is None:
             raise ValueError(f'no odometry around cloud stamp {stamp_ns * 1e-9:.3f} s')
@@ -190,8 +212,6 @@ class LanePipeline:
         self.output_frame = self.odom_frame if self.uses_odometry else frame
         self.sweeps_since_detection += 1
         self.counters['clouds'] += 1
-        done = time.perf_counter()
-        return {'decode_ms': (decoded - start) * 1e3, 'grid_insert_ms': (done - decoded) * 1e3}
 
     def take_window(self) -> BevWindow | None:
         """The current window, or None if no sweep arrived since the last one was taken.

@@ -66,21 +66,23 @@ def replay(in_bag: Path, out_bag: Path, params, points_topic: str = '/points',
 
         for topic, _, msg in read_messages(in_bag, topics):
             bar.update()
-            if topic != points_topic:
+            if topic == points_topic:
+                try:
+                    pipeline.add_cloud(msg)
+                    stats['sweeps'] += 1
+                except ValueError as exc:
+                    stats['dropped'] += 1
+                    bar.write(f'dropped cloud at {stamp_to_ns(msg.header.stamp) * 1e-9:.3f} s: '
+                              f'{exc}')
+            else:
                 pipeline.add_odometry(msg)
+            # the detection timer fires on the stamps of the sweeps in the grid
+            newest = pipeline.grid.newest_stamp_ns
+            if newest is None:
                 continue
-            stamp = stamp_to_ns(msg.header.stamp)
-            if next_tick is not None and stamp < next_tick - period_ns:
-                next_tick = None  # time went back: the grid resets, so does the timer
-            try:
-                pipeline.add_cloud(msg)
-                stats['sweeps'] += 1
-            except ValueError as exc:
-                stats['dropped'] += 1
-                bar.write(f'dropped cloud at {stamp * 1e-9:.3f} s: {exc}')
-                continue
-            next_tick = stamp if next_tick is None else next_tick
-            while stamp >= next_tick:
+            if next_tick is None or newest < next_tick - period_ns:
+                next_tick = newest  # first sweep, or time went back (the grid reset too)
+            while newest >= next_tick:
                 out = pipeline.detect()
                 if out is not None:
                     publish(out)

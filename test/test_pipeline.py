@@ -113,3 +113,19 @@ def test_a_cloud_without_odometry_coverage_is_refused_by_name():
     pipeline.add_odometry(_odom(5_000_000_000, np.eye(4)))
     with pytest.raises(ValueError, match='no odometry around cloud stamp 1.000 s'):
         pipeline.add_cloud(_cloud(1_000_000_000))
+
+
+def test_a_cloud_ahead_of_its_odometry_waits_for_it():
+    detector = FixedLanes([], [])
+    pipeline = LanePipeline(DetectorParams(size_px=64, resolution_m=0.5), detector)
+    pipeline.add_odometry(_odom(0, euler_to_matrix(0, 0, 0, 0, 0, 0)))
+    pipeline.add_cloud(_cloud(100_000_000))  # its odometry is still on the way
+    assert len(pipeline.grid) == 0 and pipeline.detect() is None
+    pipeline.add_odometry(_odom(100_000_000, euler_to_matrix(2.0, 0, 0, 0, 0, 0)))
+    assert len(pipeline.grid) == 1
+    pipeline.detect()
+    np.testing.assert_allclose(detector.windows[0].window_to_output[:3, 3], [2, 0, 0])
+    # without odometry for too long, the oldest waiting sweep goes in on the held pose
+    for k in range(2, 6):
+        pipeline.add_cloud(_cloud(k * 100_000_000))
+    assert len(pipeline.pending) == 3 and pipeline.counters['clouds'] == 2
