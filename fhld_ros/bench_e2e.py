@@ -85,6 +85,7 @@ def bench_e2e(seconds: float = SECONDS) -> dict[str, float]:
         node.terminate()
         node.wait(timeout=20)
         executor.shutdown()
+        spinner.join(timeout=10)
         bench.destroy_node()
         context.try_shutdown()
     latencies = np.array([(t - published[s]) * 1e3 for s, t in arrivals if s in published])

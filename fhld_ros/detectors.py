@@ -26,6 +26,8 @@ def fhld_detector(params: DetectorParams) -> Detector:
     from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT, CheckpointError, load_checkpoint
     from fhld_ros.model.config import FhldConfig
     path = params.checkpoint or DEFAULT_CHECKPOINT
+    if params.model_threads > 0:
+        torch.set_num_threads(params.model_threads)
     if params.device == 'cuda' and not torch.cuda.is_available():
         raise CliError("device 'cuda' was asked for but torch sees no CUDA device")
     expect = FhldConfig(size_px=params.size_px, resolution_m=params.resolution_m)

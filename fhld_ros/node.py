@@ -107,6 +107,8 @@ def make_node():
             if p.input_reliability == 'auto':
                 self.create_timer(QOS_CHECK_SEC, self.match_publisher_qos, callback_group=inputs,
                                   clock=wall)
+            self.get_logger().info(f'lane_detector ready: {p.detector} detector, clouds on '
+                                   f'{self.resolve_topic_name(p.points_topic)}')
 
         def _declare_parameters(self) -> DetectorParams:
             defaults, values = DetectorParams(), {}

@@ -18,6 +18,7 @@ class DetectorParams:
     detector: str = 'fhld'
     checkpoint: str = ''
     device: str = 'cpu'
+    model_threads: int = 1
     score_threshold: float = 0.5
     size_px: int = 640
     resolution_m: float = 0.04
@@ -53,6 +54,8 @@ DESCRIPTIONS: dict[str, str] = {
     'detector': "'fhld' (the learned model) or 'classical' (rule-based baseline)",
     'checkpoint': 'FHLD weights (.pt); empty = the shipped fhld_ros/checkpoints/fhld.pt',
     'device': "'cpu' or 'cuda' for the model",
+    'model_threads': 'torch CPU threads for the model (0 = torch default); 1 is fastest when '
+                     'decoding and publishing share a small CPU',
     'score_threshold': 'minimum lane confidence to publish',
     'size_px': 'BEV window size in cells (square)',
     'resolution_m': 'BEV cell size in metres',

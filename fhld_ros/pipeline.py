@@ -100,7 +100,8 @@ class LaneIdTracker:
         ids = np.full(len(lanes), -1, dtype=np.int64)
         if lanes and self.previous:
             cost = np.array([[_mean_distance(a, b) for b in self.previous] for a in lanes])
-            rows, cols = linear_sum_assignment(cost)
+            # inf (no overlap) would make the assignment infeasible; such pairs fail the test
+            rows, cols = linear_sum_assignment(np.minimum(cost, 1e6))
             good = cost[rows, cols] <= self.max_distance
             ids[rows[good]] = self.previous_ids[cols[good]]
         fresh = ids < 0

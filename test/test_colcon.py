@@ -27,6 +27,8 @@ def test_colcon_build_installs_a_runnable_lane_detector(tmp_path, ros_env):
     assert (install / 'fhld_ros/share/fhld_ros/package.xml').is_file()
     assert (install / 'fhld_ros/share/fhld_ros/config/lane_detector.yaml').is_file()
     assert os.access(install / 'fhld_ros/lib/fhld_ros/lane_detector', os.X_OK)
+    shipped = list(install.glob('fhld_ros/lib/python3*/site-packages/fhld_ros/checkpoints/*.pt'))
+    assert shipped, 'the shipped weights are not installed'
 
     # Resolve the executable as `ros2 run` does: package prefix from the ament index.
     script = (
@@ -44,7 +46,7 @@ def test_colcon_build_installs_a_runnable_lane_detector(tmp_path, ros_env):
             if not line:
                 break
             lines.append(line)
-            if 'lane_detector started' in line:
+            if 'lane_detector ready' in line:
                 break
         time.sleep(0.5)  # spin a little
         node.send_signal(signal.SIGINT)

@@ -58,6 +58,9 @@ def test_lane_ids_survive_small_motion_and_new_lanes_get_new_ids():
     second = tracker.assign([_line(-1.6), _line(5.3), _line(1.9)])
     assert second[0] == first[1] and second[2] == first[0]
     assert second[1] not in first
+    # lanes that overlap nothing from before (an infeasible assignment) all get fresh ids
+    far = tracker.assign([_line(1.8) + [100, 0, 0], _line(-1.7) + [100, 0, 0]])
+    assert not set(far) & set(second)
 
 
 def test_ego_lane_bounds_pick_the_nearest_line_each_side():
