@@ -18,8 +18,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--topics', nargs='+', help='topics to publish (default: all)')
     parser.add_argument('--rate', type=float, default=1.0, help='playback speed factor')
     parser.add_argument('--no-clock', action='store_true', help='do not publish /clock')
-    parser.add_argument('--wait-for', metavar='TOPIC',
-                        help='wait (up to --wait-timeout s) until TOPIC has a subscriber')
+    parser.add_argument('--wait-for', metavar='TOPIC', nargs='+', default=[],
+                        help='wait (up to --wait-timeout s) until each TOPIC has a matched '
+                             'subscriber, so that nothing is published into the void')
     parser.add_argument('--wait-timeout', type=float, default=20.0)
     parser.add_argument('--best-effort', action='store_true',
                         help='publish with best-effort reliability (like most LiDAR drivers)')
@@ -49,10 +50,10 @@ def run(args: argparse.Namespace) -> int:
         publishers = {t: node.create_publisher(family.cls(available[t]), t, qos) for t in topics}
         clock = None if args.no_clock else node.create_publisher(
             family.cls('rosgraph_msgs/msg/Clock'), '/clock', 10)
-        if args.wait_for:
-            if args.wait_for not in publishers:
-                raise CliError(f'--wait-for {args.wait_for} is not among the published topics')
-            _wait_for_subscriber(publishers[args.wait_for], args.wait_for, args.wait_timeout)
+        for topic in args.wait_for:
+            if topic not in publishers:
+                raise CliError(f'--wait-for {topic} is not among the published topics')
+            _wait_for_subscriber(publishers[topic], topic, args.wait_timeout)
         count, start_wall, start_bag = 0, None, None
         for topic, _, stamp, raw in read_raw(args.bag, topics):
             if start_wall is None:

@@ -96,7 +96,8 @@ def test_bag_played_to_the_node_gives_the_replay_lanes(scene, node_process, ros_
     listener = Listener(rclpy_context)
     try:
         play = subprocess.run(
-            [sys.executable, '-m', 'fhld_ros.cli', 'play', str(sim), '--wait-for', '/points'],
+            [sys.executable, '-m', 'fhld_ros.cli', 'play', str(sim), '--wait-for', '/points',
+             '/odom'],
             env=ros_env, capture_output=True, text=True, timeout=120)
         assert play.returncode == 0, play.stderr
         assert _wait(lambda: len(listener.diagnostics) >= 1, 10)
