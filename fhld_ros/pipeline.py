@@ -191,12 +191,18 @@ class LanePipeline:
         xyz, intensity = read_xyzi(msg)
         decoded = time.perf_counter()
         sweep = (stamp_to_ns(msg.header.stamp), str(msg.header.frame_id), xyz, intensity)
-        if self.uses_odometry and sweep[0] > self.odometry.stamps[-1]:
+        ahead = self.uses_odometry and sweep[0] > self.odometry.stamps[-1]
+        first = not self.uses_odometry and self.counters['clouds'] == 0  # odometry may be near
+        if ahead or first or self.pending:
             self.pending.append(sweep)
             if len(self.pending) <= MAX_PENDING:
                 return {'decode_ms': (decoded - start) * 1e3}
-            sweep = self.pending.popleft()  # odometry is late: the oldest goes on a held pose
-        self._insert(*sweep)
+            # odometry is late: the oldest goes in on a held pose; with no odometry at all,
+            # everything that waited goes in per sweep
+            for _ in range(1 if self.uses_odometry else len(self.pending)):
+                self._insert(*self.pending.popleft())
+        else:
+            self._insert(*sweep)
         done = time.perf_counter()
         return {'decode_ms': (decoded - start) * 1e3, 'grid_insert_ms': (done - decoded) * 1e3}
 

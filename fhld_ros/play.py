@@ -54,6 +54,10 @@ def run(args: argparse.Namespace) -> int:
             if topic not in publishers:
                 raise CliError(f'--wait-for {topic} is not among the published topics')
             _wait_for_subscriber(publishers[topic], topic, args.wait_timeout)
+        if args.wait_for:
+            # the writer sees the match before the reader does, and a reliable reader drops
+            # samples from writers it does not know yet: give discovery a moment to finish
+            time.sleep(1.0)
         count, start_wall, start_bag = 0, None, None
         for topic, _, stamp, raw in read_raw(args.bag, topics):
             if start_wall is None:
@@ -81,4 +85,3 @@ def _wait_for_subscriber(publisher, topic: str, timeout: float) -> None:
         if time.monotonic() > deadline:
             raise CliError(f'no subscriber appeared on {topic} within {timeout:.0f} s')
         time.sleep(0.05)
-    time.sleep(0.2)  # the reader side completes its match a moment later

@@ -103,9 +103,12 @@ def test_cloud_in_another_frame_uses_the_static_extrinsic():
 def test_without_odometry_each_sweep_stands_alone_in_the_cloud_frame():
     detector = FixedLanes([_line(1.8)], [0.9])
     pipeline = LanePipeline(DetectorParams(size_px=64, resolution_m=0.5), detector)
-    for k in range(3):
+    for k in range(3):  # the first sweeps wait briefly in case odometry is on its way
         pipeline.add_cloud(_cloud(k * 100_000_000, frame='os_lidar'))
-    assert len(pipeline.grid) == 1
+    assert len(pipeline.grid) == 0
+    for k in range(3, 5):
+        pipeline.add_cloud(_cloud(k * 100_000_000, frame='os_lidar'))
+    assert len(pipeline.grid) == 1 and pipeline.counters['clouds'] == 5
     out = pipeline.detect()
     assert out.frame_id == 'os_lidar'
     np.testing.assert_allclose(out.lanes[0], _line(1.8), atol=1e-6)
