@@ -70,6 +70,17 @@ class BevSpec:
         return (colrow - self.size_px / 2) * self.resolution_m
 
 
+def min_height_m(raster: np.ndarray) -> np.ndarray:
+    """(..., 4, H, W) raster -> (..., H, W) per-cell minimum height in metres, NaN where empty.
+
+    The inverse of the min-height channel inside its clip range (heights outside
+    [MIN_HEIGHT_LOW_M, MIN_HEIGHT_HIGH_M] come back clipped).
+    """
+    raster = np.asarray(raster)
+    z = raster[..., 3, :, :] * (MIN_HEIGHT_HIGH_M - MIN_HEIGHT_LOW_M) + MIN_HEIGHT_LOW_M
+    return np.where(raster[..., 1, :, :] > 0, z, np.nan)
+
+
 def normalize_intensity(raw: np.ndarray, scale: float | None = None) -> np.ndarray:
     """Raw intensity of one sweep -> float32 in [0, 1].
 

@@ -6,7 +6,9 @@ cover every sensor preset x topology pair. Each window goes through the node's o
 (PointCloud2 -> read_xyzi -> RollingBevGrid); the detectors see the identical BevWindow:
 
 * `classical`   rule-based baseline on the window's accumulated points
-* `fhld`        the FHLD model's final output (local branch points)
+* `fhld`        the FHLD model's final output (local branch points, heights refined from the
+                measured surface: model/heights.py)
+* `fhld-model-z` the same lanes with the local branch's own heights (no refinement)
 * `fhld-global` the same model's global curves alone (the paper's "without local branch" row)
 
 Scores: the FHLD point metric and the ONCE-3DLanes lane metric, counts summed over windows.
@@ -25,7 +27,7 @@ import numpy as np
 
 from fhld_ros.errors import CliError
 
-DETECTORS = ('classical', 'fhld', 'fhld-global')
+DETECTORS = ('classical', 'fhld', 'fhld-model-z', 'fhld-global')
 SEEDS = 56
 WINDOWS_PER_SEED = 4
 CURVE_POINTS = 200
@@ -50,13 +52,15 @@ def _init(detectors: list[str], checkpoint: str | None, threshold: float) -> Non
     if 'classical' in detectors:
         from fhld_ros.classical import ClassicalLaneDetector
         _worker['classical'] = ClassicalLaneDetector()
-    if {'fhld', 'fhld-global'} & set(detectors):
+    if {'fhld', 'fhld-model-z', 'fhld-global'} & set(detectors):
         from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint
         _worker['model'] = load_checkpoint(checkpoint or DEFAULT_CHECKPOINT).model.eval()
 
 
 def _detect(window) -> dict[str, list[np.ndarray]]:
     import torch
+
+    from fhld_ros.model.heights import refine_lane_heights
     found: dict[str, list[np.ndarray]] = {}
     if 'classical' in _worker:
         found['classical'] = _worker['classical'].detect(window.points_window,
@@ -64,8 +68,9 @@ def _detect(window) -> dict[str, list[np.ndarray]]:
     if 'model' in _worker:
         raster = torch.from_numpy(window.raster).unsqueeze(0)
         det = _worker['model'].detect(raster, score_threshold=_worker['threshold'],
-                                      curve_points=CURVE_POINTS)[0]
-        found['fhld'], found['fhld-global'] = det.lanes, det.curves
+                                      curve_points=CURVE_POINTS, refine_heights=False)[0]
+        found['fhld-model-z'], found['fhld-global'] = det.lanes, det.curves
+        found['fhld'] = refine_lane_heights(det.lanes, window.raster, window.spec.resolution_m)
     return {name: found[name] for name in _worker['detectors']}
 
 
@@ -98,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.seeds < 1 or args.windows_per_seed < 1 or args.workers < 1:
         raise CliError('--seeds, --windows-per-seed and --workers must be >= 1')
-    wants_model = {'fhld', 'fhld-global'} & set(args.detectors)
+    wants_model = {'fhld', 'fhld-model-z', 'fhld-global'} & set(args.detectors)
     checkpoint = args.checkpoint or DEFAULT_CHECKPOINT
     if wants_model and not Path(checkpoint).is_file():
         raise CliError(f'checkpoint not found: {checkpoint}')
@@ -137,11 +142,11 @@ def summarise(results: list[dict], detectors: list[str]) -> dict:
 def print_table(report: dict) -> None:
     print(f'held-out test set: {report["windows"]} windows from {report["seeds"]} seeds, '
           f'{len(report["sensors"])} sensors, {len(report["topologies"])} topology settings')
-    header = f'{"detector":<12} {"P@10":>6} {"R@10":>6} {"F1@10":>6} {"P@30":>6} {"R@30":>6} ' \
+    header = f'{"detector":<13} {"P@10":>6} {"R@10":>6} {"F1@10":>6} {"P@30":>6} {"R@30":>6} ' \
              f'{"F1@30":>6} | {"ONCE P":>6} {"R":>6} {"F1":>6} {"CD m":>6}'
     print(header)
     for name, scores in report['detectors'].items():
         p, o = scores['point'], scores['once']
-        print(f'{name:<12} {p["P@10"]:6.2f} {p["R@10"]:6.2f} {p["F1@10"]:6.2f} '
+        print(f'{name:<13} {p["P@10"]:6.2f} {p["R@10"]:6.2f} {p["F1@10"]:6.2f} '
               f'{p["P@30"]:6.2f} {p["R@30"]:6.2f} {p["F1@30"]:6.2f} | {o["P"]:6.2f} '
               f'{o["R"]:6.2f} {o["F1"]:6.2f} {o["CD"]:6.3f}')

@@ -4,7 +4,8 @@ Training: ``outputs = model(raster, targets=targets)``; the last decoder layer i
 the GT inside forward so the anchor cells can follow the matched predicted curves; the matches,
 prepared GT, anchors and local predictions are returned for the criterion (losses.py).
 Inference: ``model.detect(raster, score_threshold)`` -> one Detections per batch item, lanes as
-ordered (K, 3) point sequences in window-frame metres. No NMS: one query is one lane.
+ordered (K, 3) point sequences in window-frame metres. No NMS: one query is one lane. Lane
+heights then follow the surface measured in the raster (heights.py).
 """
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ from fhld_ros.model.anchors import inference_anchors, training_anchors
 from fhld_ros.model.backbone import SlimResNet
 from fhld_ros.model.config import FhldConfig
 from fhld_ros.model.global_branch import GlobalBranch
+from fhld_ros.model.heights import refine_lane_heights
 from fhld_ros.model.local_branch import LocalFeatures, LocalHead
 from fhld_ros.model.targets import LaneTargets, prepare_targets, to_metres
 
@@ -86,8 +88,12 @@ class FhldDetector(nn.Module):
 
     @torch.inference_mode()
     def detect(self, raster: Tensor, score_threshold: float = 0.5,
-               curve_points: int = 0) -> list[Detections]:
-        """Lanes per batch item. curve_points > 0 also samples each global curve."""
+               curve_points: int = 0, refine_heights: bool = True) -> list[Detections]:
+        """Lanes per batch item. curve_points > 0 also samples each global curve.
+
+        refine_heights: lane heights follow the measured surface in the raster (heights.py);
+        False keeps the local branch's own heights.
+        """
         was_training = self.training
         self.eval()
         try:
@@ -118,6 +124,10 @@ class FhldDetector(nn.Module):
             det.confidences = np.append(det.confidences, conf_np[i])
             if curve_points:
                 det.curves.append(to_metres(sampled[i], cfg.window_m))
+        if refine_heights:
+            for item, det in enumerate(results):
+                det.lanes = refine_lane_heights(det.lanes, raster[item].cpu().numpy(),
+                                                cfg.resolution_m)
         return results
 
 

@@ -1,0 +1,79 @@
+"""Lane heights from the measured road surface: a post-processing step of FhldDetector.detect.
+
+The local branch places lanes well in the ground plane (on the held-out windows, 80 % of
+predicted points lie within 10 cm of a GT lane in x, y) but its heights are coarse (median
+error 10 cm), and at a 10 cm threshold in 3D that costs most of the precision. The raster
+already holds the measured surface: the min-height channel. Each lane point takes the median
+minimum height of the occupied cells around it (a 5 x 5 cell patch); samples further than
+GATE_M from the predicted height are rejected (cars, kerbs, empty or occluded road), and the
+remaining ones are fitted with a robust cubic in arc length, so one lane gets one smooth
+profile. Lanes with too few accepted samples keep the model's heights.
+
+Measured on 16 held-out windows with the shipped weights: F1@10 cm 29.3 -> 60.6,
+F1@30 cm 70.5 -> 74.3 (x, y unchanged). `refine_heights=False` in detect() turns it off.
+"""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from fhld_ros.bev import min_height_m
+
+PATCH_CELLS = 5      # side of the cell patch sampled around each lane point
+GATE_M = 0.30        # a surface sample this far from the predicted height is not the lane's
+FIT_DEGREE = 3       # height profile along the lane: a cubic in arc length
+REWEIGHT_ROUNDS = 3  # iteratively reweighted fit (Huber-like weights beyond 2 robust sigma)
+MIN_SIGMA_M = 0.01   # floor of the robust residual scale
+
+
+def surface_heights(surface: np.ndarray, xy: np.ndarray, resolution_m: float) -> np.ndarray:
+    """Median of the (H, W) surface heights in the PATCH_CELLS patch at each window-frame xy.
+
+    NaN where the whole patch is empty.
+    """
+    size = surface.shape[-1]
+    cell = np.floor(xy / resolution_m + size / 2).astype(np.intp)
+    r = PATCH_CELLS // 2
+    offsets = np.arange(-r, r + 1)
+    cols = np.clip(cell[:, 0, None, None] + offsets[None, None, :], 0, size - 1)
+    rows = np.clip(cell[:, 1, None, None] + offsets[None, :, None], 0, size - 1)
+    patch = surface[rows, cols].reshape(len(xy), -1)
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore', RuntimeWarning)  # all-NaN patches -> NaN
+        return np.nanmedian(patch, axis=1)
+
+
+def robust_profile(arc: np.ndarray, z: np.ndarray) -> np.ndarray | None:
+    """Robust polynomial z(arc) through the finite samples; None with too few of them."""
+    ok = np.isfinite(z)
+    degree = min(FIT_DEGREE, int(ok.sum()) - 1)
+    if degree < 1 or ok.sum() < 4:
+        return None
+    s, y = arc[ok], z[ok]
+    weights = np.ones_like(y)
+    for _ in range(REWEIGHT_ROUNDS):
+        coef = np.polyfit(s, y, degree, w=weights)
+        resid = np.abs(y - np.polyval(coef, s))
+        sigma = max(1.4826 * float(np.median(resid)), MIN_SIGMA_M)
+        weights = 1.0 / np.maximum(1.0, resid / (2.0 * sigma))
+    return np.polyval(coef, arc)
+
+
+def refine_lane_heights(lanes: list[np.ndarray], raster: np.ndarray,
+                        resolution_m: float) -> list[np.ndarray]:
+    """New (K, 3) window-frame lanes whose z follows the measured surface of raster (4, H, W)."""
+    if not lanes:
+        return []
+    surface = min_height_m(raster)
+    refined = []
+    for lane in lanes:  # one iteration per lane (at most one per query)
+        measured = surface_heights(surface, lane[:, :2], resolution_m)
+        measured[np.abs(measured - lane[:, 2]) > GATE_M] = np.nan
+        arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(lane[:, :2], axis=0), axis=1))]
+        profile = robust_profile(arc, measured)
+        out = lane.copy()
+        if profile is not None:
+            out[:, 2] = profile
+        refined.append(out)
+    return refined
