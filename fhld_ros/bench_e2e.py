@@ -5,7 +5,8 @@ process publishes simulated 64x1024 Ouster-like sweeps and their odometry at 10 
 clock and timestamps every /lanes message on arrival. Latency = /lanes arrival - publish time
 of the newest sweep it was computed from (the message's stamp). A sweep that never becomes the
 newest sweep of a /lanes message counts as dropped. Backlog growth compares the median latency
-of the last third of the run with the first third.
+of the last third of the run with the first third. The node's stage medians (node_stage_*_ms_p50,
+from its /diagnostics) say where the time goes.
 """
 from __future__ import annotations
 
@@ -18,6 +19,8 @@ import time
 import numpy as np
 
 SECONDS = float(os.environ.get('FHLD_BENCH_E2E_SECONDS', '30'))
+# node parameters for the run, e.g. FHLD_BENCH_E2E_PARAMS='model_threads:=2 detector:=classical'
+PARAMS = os.environ.get('FHLD_BENCH_E2E_PARAMS', '').split()
 DISTINCT_SWEEPS = 50  # simulated once, then replayed with fresh stamps
 RATE_HZ = 10.0
 
@@ -39,7 +42,9 @@ def bench_e2e(seconds: float = SECONDS) -> dict[str, float]:
     from msg_adapters.pointcloud2 import create_cloud
 
     sweeps = _sweeps(DISTINCT_SWEEPS)
-    node = subprocess.Popen([sys.executable, '-m', 'fhld_ros.node'], env=dict(os.environ),
+    ros_args = ['--ros-args', *[a for p in PARAMS for a in ('-p', p)]] if PARAMS else []
+    node = subprocess.Popen([sys.executable, '-m', 'fhld_ros.node', *ros_args],
+                            env=dict(os.environ),
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     family = rclpy_family()
     context = rclpy.Context()
@@ -50,6 +55,11 @@ def bench_e2e(seconds: float = SECONDS) -> dict[str, float]:
     bench.create_subscription(family.cls('visualization_msgs/msg/MarkerArray'), 'lanes',
                               lambda m: arrivals.append((stamp_to_ns(m.markers[0].header.stamp),
                                                          time.monotonic())), reliable)
+    node_diag: dict[str, str] = {}
+    bench.create_subscription(
+        family.cls('diagnostic_msgs/msg/DiagnosticArray'), 'diagnostics',
+        lambda m: node_diag.update({kv.key: kv.value for st in m.status for kv in st.values}),
+        reliable)
     points = bench.create_publisher(family.cls('sensor_msgs/msg/PointCloud2'), 'points',
                                     reliable)
     odom = bench.create_publisher(family.cls('nav_msgs/msg/Odometry'), 'odom', reliable)
@@ -100,4 +110,7 @@ def bench_e2e(seconds: float = SECONDS) -> dict[str, float]:
         'e2e_seconds': float(seconds), 'sweeps_published': float(len(published)),
         'lanes_messages': float(latencies.size),
         'sweeps_dropped': float(len(published) - len({s for s, _ in arrivals})),
+        # the node's own view (its /diagnostics): stage medians from callback arrival
+        **{f'node_{k}': float(v) for k, v in node_diag.items()
+           if k.startswith(('stage_', 'latency_ms_'))},
     }

@@ -25,6 +25,7 @@ def fhld_detector(params: DetectorParams) -> Detector:
 
     from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT, CheckpointError, load_checkpoint
     from fhld_ros.model.config import FhldConfig
+    from fhld_ros.model.inference import TracedFeatures
     path = params.checkpoint or DEFAULT_CHECKPOINT
     if params.model_threads > 0:
         torch.set_num_threads(params.model_threads)
@@ -36,10 +37,12 @@ def fhld_detector(params: DetectorParams) -> Detector:
     except CheckpointError as exc:
         raise CliError(str(exc)) from exc
     model = loaded.model.to(params.device).eval()
+    features = TracedFeatures(model)
 
     def detect(window: BevWindow) -> tuple[list[np.ndarray], np.ndarray]:
         raster = torch.from_numpy(window.raster).unsqueeze(0).to(params.device)
-        found = model.detect(raster, score_threshold=params.score_threshold)[0]
+        found = model.detect(raster, score_threshold=params.score_threshold,
+                             features=features(raster))[0]
         return found.lanes, found.confidences
     return detect
 

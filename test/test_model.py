@@ -12,6 +12,7 @@ from fhld_ros.model.cell_targets import cell_targets
 from fhld_ros.model.config import FhldConfig
 from fhld_ros.model.curve import AdaptiveAxisCurve, FixedAxisCurve
 from fhld_ros.model.detector import Detections, FhldDetector
+from fhld_ros.model.inference import TracedFeatures
 from fhld_ros.model.roi_align import roi_align
 from fhld_ros.model.targets import prepare_targets, resample_polyline, to_metres, to_normalised
 from model_fixtures import small_config
@@ -256,3 +257,21 @@ def test_default_model_size_and_input_spec():
     with torch.inference_mode():
         out = model.eval()(torch.zeros(1, 4, 640, 640))
     assert out['curves'].shape == (1, 15, 12)
+
+
+def test_traced_features_match_eager_and_give_the_same_lanes():
+    torch.manual_seed(2)
+    model = FhldDetector(small_config(local_score_threshold=0.0)).eval()
+    raster = torch.rand(1, 4, 128, 128)
+    traced = TracedFeatures(model)
+    with torch.no_grad():
+        for eager, graph in zip(model.features(raster), traced(raster)):
+            torch.testing.assert_close(graph, eager, rtol=1e-4, atol=1e-5)
+    assert traced.graph is not None and traced.shape == (1, 4, 128, 128)
+    eager_det = model.detect(raster, score_threshold=0.0)[0]
+    graph_det = model.detect(raster, score_threshold=0.0, features=traced(raster))[0]
+    assert len(eager_det.lanes) == len(graph_det.lanes) >= 1
+    for a, b in zip(eager_det.lanes, graph_det.lanes):
+        np.testing.assert_allclose(a, b, atol=1e-4)
+    other = torch.rand(2, 4, 128, 128)  # another shape: eager, same result
+    torch.testing.assert_close(traced(other)[2], model.features(other)[2])

@@ -88,18 +88,22 @@ class FhldDetector(nn.Module):
 
     @torch.inference_mode()
     def detect(self, raster: Tensor, score_threshold: float = 0.5,
-               curve_points: int = 0, refine_heights: bool = True) -> list[Detections]:
+               curve_points: int = 0, refine_heights: bool = True,
+               features: tuple[Tensor, Tensor, Tensor] | None = None) -> list[Detections]:
         """Lanes per batch item. curve_points > 0 also samples each global curve.
 
         refine_heights: lane heights follow the measured surface in the raster (heights.py);
-        False keeps the local branch's own heights.
+        False keeps the local branch's own heights. features: this raster's features() computed
+        elsewhere (TracedFeatures in inference.py).
         """
-        was_training = self.training
-        self.eval()
-        try:
-            logits, curves, local_map = self.features(raster)
-        finally:
-            self.train(was_training)
+        if features is None:
+            was_training = self.training
+            self.eval()
+            try:
+                features = self.features(raster)
+            finally:
+                self.train(was_training)
+        logits, curves, local_map = features
         cfg = self.cfg
         prob = logits[-1].softmax(-1)[..., 1]
         batch, query = (prob >= score_threshold).nonzero(as_tuple=True)
