@@ -37,11 +37,25 @@ def _open_reader(path: str | Path) -> Any:
     return reader
 
 
-def bag_topics(path: str | Path) -> dict[str, str]:
-    """Topic -> message type name of every connection in the bag."""
+def _select_topics(path: str | Path, types: dict[str, str],
+                   topics: Iterable[str] | None) -> dict[str, str]:
+    """types restricted to topics (all when None); a topic missing from the bag is an error."""
+    if topics is None:
+        return types
+    wanted = list(topics)
+    missing = [t for t in wanted if t not in types]
+    if missing:
+        raise BagError(f'bag {path} has no topic {", ".join(missing)} (it has: '
+                       f'{", ".join(sorted(types)) or "nothing"})')
+    return {t: types[t] for t in wanted}
+
+
+def bag_topics(path: str | Path, topics: Iterable[str] | None = None) -> dict[str, str]:
+    """Topic -> message type name of every connection in the bag, or of the given topics
+    (BagError naming any the bag lacks)."""
     reader = _open_reader(path)
     try:
-        return {c.topic: c.msgtype for c in reader.connections}
+        return _select_topics(path, {c.topic: c.msgtype for c in reader.connections}, topics)
     finally:
         reader.close()
 
@@ -67,14 +81,8 @@ def read_raw(path: str | Path,
     reader = _open_reader(path)
     try:
         connections = list(reader.connections)
-        if topics is not None:
-            wanted = list(topics)
-            present = {c.topic for c in connections}
-            missing = [t for t in wanted if t not in present]
-            if missing:
-                raise BagError(f'bag {path} has no topic {", ".join(missing)} (it has: '
-                               f'{", ".join(sorted(present)) or "nothing"})')
-            connections = [c for c in connections if c.topic in wanted]
+        wanted = _select_topics(path, {c.topic: c.msgtype for c in connections}, topics)
+        connections = [c for c in connections if c.topic in wanted]
         for connection, stamp, raw in reader.messages(connections=connections):
             yield connection.topic, connection.msgtype, stamp, raw
     finally:

@@ -259,7 +259,7 @@ def rasterize(xyz_window: np.ndarray, intensity01: np.ndarray,
     return acc.encode(HEIGHT_SHIFT_M)
 
 
-def _yaw_frame(sensor_to_output: np.ndarray) -> np.ndarray:
+def yaw_frame(sensor_to_output: np.ndarray) -> np.ndarray:
     """Gravity-aligned pose: sensor position, yaw of its x axis, roll/pitch dropped."""
     yaw = math.atan2(sensor_to_output[1, 0], sensor_to_output[0, 0])
     c, s = math.cos(yaw), math.sin(yaw)
@@ -428,7 +428,7 @@ class RollingBevGrid:
         if not self._sweeps:
             return None
         spec, newest = self.spec, self._sweeps[-1]
-        window_to_output = _yaw_frame(newest.pose)
+        window_to_output = yaw_frame(newest.pose)
         rot, origin = window_to_output[:3, :3], window_to_output[:3, 3]  # window axes in output
         self._acc.clear()
         sources = []

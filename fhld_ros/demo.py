@@ -42,29 +42,9 @@ def _window_at(bag: Path, stamp_ns: int, params) -> object:
 
 def draw(frame, window, path: Path, title: str) -> None:
     """BEV mean intensity with GT (green) and predicted (red) lanes, forward up."""
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-
-    half = window.spec.length_m / 2
-    fig, ax = plt.subplots(figsize=(7, 7))
-    intensity = window.raster[0].T[::-1, ::-1]  # rows: x forward (up), cols: y left (left)
-    ax.imshow(np.sqrt(intensity), cmap='gray', extent=(half, -half, -half, half), vmax=0.8)
-    for i, lane in enumerate(frame.gt):
-        ax.plot(lane[:, 1], lane[:, 0], color='lime', lw=5, alpha=0.45,
-                label='ground truth' if i == 0 else None)
-    for i, lane in enumerate(frame.pred):
-        ax.plot(lane[:, 1], lane[:, 0], color='red', lw=1.3,
-                label='detected' if i == 0 else None)
-    ax.plot([0], [0], marker='^', color='cyan', ms=9, label='ego')
-    ax.set_xlim(half, -half)
-    ax.set_ylim(-half, half)
-    ax.set_xlabel('y (m, left)')
-    ax.set_ylabel('x (m, forward)')
-    ax.set_title(title, fontsize=9)
-    ax.legend(loc='lower right', fontsize=8)
-    fig.savefig(path, dpi=110, bbox_inches='tight')
-    plt.close(fig)
+    from fhld_ros.evaluate import draw_top_view
+    draw_top_view(path, frame.gt, frame.pred, window.spec.length_m / 2, title,
+                  background=window.raster[0])
 
 
 def run(args: argparse.Namespace) -> int:

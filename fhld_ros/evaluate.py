@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -208,12 +209,41 @@ def write_per_frame(frames: list[Frame], path: str) -> None:
         writer.writerows(rows)
 
 
-def plot_worst(frames: list[Frame], out_dir: str, n: int) -> list[Path]:
-    """Top-view PNGs of the n frames with the lowest F1@10 (frames with lanes only)."""
+def draw_top_view(path: Path, gt: Sequence[np.ndarray], pred: Sequence[np.ndarray],
+                  half: float, title: str, background: np.ndarray | None = None) -> None:
+    """A PNG of window-frame lanes seen from above, forward up and left to the left: GT (green,
+    wide) under predictions (red), the ego, and the window outline or a (H, W) raster behind."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
+    fig, ax = plt.subplots(figsize=(7, 7))
+    if background is None:
+        ax.plot([-half, half, half, -half, -half], [-half, -half, half, half, -half],
+                color='0.6', lw=1)
+    else:  # raster rows: y, cols: x -> image rows: x forward (up), cols: y left (left)
+        ax.imshow(np.sqrt(background.T[::-1, ::-1]), cmap='gray', vmax=0.8,
+                  extent=(half, -half, -half, half))
+    for i, lane in enumerate(gt):
+        ax.plot(lane[:, 1], lane[:, 0], color='lime', lw=5, alpha=0.45,
+                label='ground truth' if i == 0 else None)
+    for i, lane in enumerate(pred):
+        ax.plot(lane[:, 1], lane[:, 0], color='red', lw=1.3,
+                label='detected' if i == 0 else None)
+    ax.plot([0], [0], marker='^', color='tab:cyan', ms=9, label='ego')
+    ax.set_xlim(half, -half)
+    ax.set_ylim(-half, half)
+    ax.set_aspect('equal')
+    ax.set_xlabel('y (m, left)')
+    ax.set_ylabel('x (m, forward)')
+    ax.set_title(title, fontsize=9)
+    ax.legend(loc='lower right', fontsize=8, framealpha=0.9)
+    fig.savefig(path, dpi=110, bbox_inches='tight')
+    plt.close(fig)
+
+
+def plot_worst(frames: list[Frame], out_dir: str, n: int) -> list[Path]:
+    """Top-view PNGs of the n frames with the lowest F1@10 (frames with lanes only)."""
     scored = [f for f in frames if f.point.n_gt or f.point.n_pred]
     scored.sort(key=lambda f: (f.point.scores()['F1@10'], f.index))
     out = Path(out_dir)
@@ -221,29 +251,11 @@ def plot_worst(frames: list[Frame], out_dir: str, n: int) -> list[Path]:
     written = []
     for f in scored[:max(n, 0)]:
         s = f.point.scores()
-        fig, ax = plt.subplots(figsize=(6, 6))
-        h = f.half_size
-        ax.plot([-h, h, h, -h, -h], [-h, -h, h, h, -h], color='0.6', lw=1)
-        # lateral axis to the left, as seen from above with forward up
-        for i, lane in enumerate(f.gt):
-            ax.plot(lane[:, 1], lane[:, 0], color='tab:green', lw=4, alpha=0.5,
-                    label='ground truth' if i == 0 else None)
-        for i, lane in enumerate(f.pred):
-            ax.plot(lane[:, 1], lane[:, 0], color='tab:red', lw=1.2,
-                    label='predicted' if i == 0 else None)
-        ax.plot([0], [0], marker='^', color='k', ms=8, label='ego')
-        ax.set_xlim(h + 0.5, -h - 0.5)
-        ax.set_ylim(-h - 0.5, h + 0.5)
-        ax.set_aspect('equal')
-        ax.set_xlabel('y (m, left)')
-        ax.set_ylabel('x (m, forward)')
-        ax.set_title(f'frame {f.index}  t={f.stamp_ns / 1e9:.3f} s\n'
-                     f'@10 cm P {s["P@10"]:.1f} R {s["R@10"]:.1f} F1 {s["F1@10"]:.1f}   '
-                     f'@30 cm F1 {s["F1@30"]:.1f}', fontsize=9)
-        ax.legend(loc='best', fontsize=8, framealpha=0.9)
         path = out / f'frame_{f.index:05d}.png'
-        fig.savefig(path, dpi=100, bbox_inches='tight')
-        plt.close(fig)
+        draw_top_view(path, f.gt, f.pred, f.half_size,
+                      f'frame {f.index}  t={f.stamp_ns / 1e9:.3f} s\n'
+                      f'@10 cm P {s["P@10"]:.1f} R {s["R@10"]:.1f} F1 {s["F1@10"]:.1f}   '
+                      f'@30 cm F1 {s["F1@30"]:.1f}')
         written.append(path)
     return written
 

@@ -86,14 +86,6 @@ def crop_to_disc(lines: list[np.ndarray], centre: np.ndarray, radius: float
     return out, src
 
 
-def _yaw_frame(pose: np.ndarray) -> np.ndarray:
-    yaw = np.arctan2(pose[1, 0], pose[0, 0])
-    frame = np.eye(4)
-    frame[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
-    frame[:3, 3] = pose[:3, 3]
-    return frame
-
-
 def training_samples(sim: Simulator, n: int | None = None, sweeps_per_sample: int = 10,
                      stride: int | None = None, spec: BevSpec | None = None,
                      keep_window: bool = False) -> Iterator[TrainingSample]:
@@ -105,7 +97,7 @@ def training_samples(sim: Simulator, n: int | None = None, sweeps_per_sample: in
     keep_window=True also hands over the BevWindow (its accumulated points feed detectors that
     work on points, such as the classical baseline); it keeps the window's sweeps alive.
     """
-    from fhld_ros.bev import BevSpec, RollingBevGrid
+    from fhld_ros.bev import BevSpec, RollingBevGrid, yaw_frame
     from msg_adapters.family import rosbags_family
     from msg_adapters.pointcloud2 import create_cloud, read_xyzi
 
@@ -127,7 +119,7 @@ def training_samples(sim: Simulator, n: int | None = None, sweeps_per_sample: in
         if k + 1 < sweeps_per_sample or (k + 1 - sweeps_per_sample) % stride:
             continue
         window = grid.window()
-        true_frame = _yaw_frame(sweep.sensor_to_odom)
+        true_frame = yaw_frame(sweep.sensor_to_odom)
         local = [(line - true_frame[:3, 3]) @ true_frame[:3, :3] for line in sim.scene.lane_lines]
         lanes, src = clip_to_square(local, spec.length_m / 2)
         meta = {'seed': sim.seed, 'sweep': k, 'stamp_ns': sweep.stamp_ns,
