@@ -34,12 +34,11 @@ def test_min_height_decodes_the_channel_and_marks_empty_cells():
 
 
 def test_surface_heights_take_the_patch_median_and_nan_when_empty():
-    surface = np.full((SPEC.size_px, SPEC.size_px), np.nan)
-    surface[100:103, 100:103] = -1.8
-    surface[100, 100] = 5.0  # one outlier cell does not move a median
-    xy = np.array([[0.05, 0.05], [-3.0, -3.0]])
-    got = surface_heights(surface, xy, SPEC.resolution_m)
-    assert got[0] == pytest.approx(-1.8)
+    xyz = [[0.01 + 0.04 * i, 0.01 + 0.04 * j, -1.8] for i in range(3) for j in range(3)]
+    xyz[0][2] = 0.5  # one outlier cell does not move a median
+    raster = rasterize(np.array(xyz), np.zeros(len(xyz)), SPEC)
+    got = surface_heights(raster, np.array([[0.05, 0.05], [-3.0, -3.0]]), SPEC.resolution_m)
+    assert got[0] == pytest.approx(-1.8, abs=1e-5)
     assert np.isnan(got[1])
 
 
