@@ -42,6 +42,7 @@ def fhld_detector(params: DetectorParams) -> Detector:
     def detect(window: BevWindow) -> tuple[list[np.ndarray], np.ndarray]:
         raster = torch.from_numpy(window.raster).unsqueeze(0).to(params.device)
         found = model.detect(raster, score_threshold=params.score_threshold,
+                             refine_heights=params.refine_heights,
                              features=features(raster))[0]
         return found.lanes, found.confidences
     return detect

@@ -20,6 +20,7 @@ class DetectorParams:
     device: str = 'cpu'
     model_threads: int = 1
     score_threshold: float = 0.5
+    refine_heights: bool = True
     size_px: int = 640
     resolution_m: float = 0.04
     accumulate_sec: float = 1.0
@@ -37,6 +38,8 @@ class DetectorParams:
             problems.append(f"device must be 'cpu' or 'cuda', not {self.device!r}")
         if self.input_reliability not in ('auto', 'reliable', 'best_effort'):
             problems.append("input_reliability must be 'auto', 'reliable' or 'best_effort'")
+        if not isinstance(self.refine_heights, bool):
+            problems.append('refine_heights must be true or false')
         if len(self.lidar_to_base) != 6:
             problems.append('lidar_to_base must be [x, y, z, roll, pitch, yaw]')
         if not (self.rate_hz > 0 and self.accumulate_sec >= 0 and self.max_sweeps >= 1
@@ -57,6 +60,8 @@ DESCRIPTIONS: dict[str, str] = {
     'model_threads': 'torch CPU threads for the model (0 = torch default); 1 is fastest when '
                      'decoding and publishing share a small CPU',
     'score_threshold': 'minimum lane confidence to publish',
+    'refine_heights': 'FHLD lane heights follow the measured road surface (robust fit of the '
+                      "raster's minimum heights); false keeps the model's own heights",
     'size_px': 'BEV window size in cells (square)',
     'resolution_m': 'BEV cell size in metres',
     'accumulate_sec': 'sweeps younger than this (relative to the newest) are accumulated',
