@@ -18,13 +18,13 @@ from fhld_ros.parameters import DESCRIPTIONS, DetectorParams
 
 WARN_THROTTLE_SEC = 5.0
 QOS_CHECK_SEC = 1.0
-# The detection timer polls this often (ROS time) and detects when a new sweep is in and 1 /
-# rate_hz has passed: a sweep waits at most one poll period instead of one detection period.
+# The detection timer polls this often (ROS time) and detects when a sweep at least 1 / rate_hz
+# newer than the last detected one is in: a sweep waits at most one poll period.
 POLL_HZ = 50.0
+GIL_SWITCH_SEC = 0.0005  # see main()
 # Stage breakdown in /diagnostics (medians, ms): ingest = cloud callback (decode + insert),
 # wait = sweep arrival -> its detection starts, raster = window raster, detect = model and
 # tracking, publish = /lanes + ego paths. latency_ms = arrival -> published.
-GIL_SWITCH_SEC = 0.0005
 STAGES = ('ingest', 'wait', 'raster', 'detect', 'publish')
 
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fhld_ros.bev import min_height_m
+from fhld_ros.bev import BevSpec, min_height_m
 
 PATCH_CELLS = 5      # side of the cell patch sampled around each lane point
 GATE_M = 0.30        # a surface sample this far from the predicted height is not the lane's
@@ -32,7 +32,7 @@ def surface_heights(raster: np.ndarray, xy: np.ndarray, resolution_m: float) -> 
     """Median measured surface height (min-height channel of the (4, H, W) raster, occupied
     cells only) in the PATCH_CELLS patch at each window-frame xy; NaN where all are empty."""
     size = raster.shape[-1]
-    cell = np.floor(xy / resolution_m + size / 2).astype(np.intp)
+    cell = np.floor(BevSpec(size, resolution_m).world_to_pixel(xy)).astype(np.intp)
     r = PATCH_CELLS // 2
     offsets = np.arange(-r, r + 1)
     cols = np.clip(cell[:, 0, None] + offsets[None, :], 0, size - 1)
@@ -49,13 +49,12 @@ def surface_heights(raster: np.ndarray, xy: np.ndarray, resolution_m: float) -> 
 def robust_profile(arc: np.ndarray, z: np.ndarray) -> np.ndarray | None:
     """Robust polynomial z(arc) through the finite samples; None with too few of them."""
     ok = np.isfinite(z)
-    degree = min(FIT_DEGREE, int(ok.sum()) - 1)
-    if degree < 1 or ok.sum() < 4:
+    if ok.sum() <= FIT_DEGREE:
         return None
     s, y = arc[ok], z[ok]
     weights = np.ones_like(y)
     for _ in range(REWEIGHT_ROUNDS):
-        coef = np.polyfit(s, y, degree, w=weights)
+        coef = np.polyfit(s, y, FIT_DEGREE, w=weights)
         resid = np.abs(y - np.polyval(coef, s))
         sigma = max(1.4826 * float(np.median(resid)), MIN_SIGMA_M)
         weights = 1.0 / np.maximum(1.0, resid / (2.0 * sigma))
