@@ -51,6 +51,12 @@ def main(args: list[str] | None = None) -> int:
         pass
     finally:
         executor.shutdown()
+        # Jazzy's Executor.shutdown() does not wait for callbacks still running in the pool;
+        # destroying the node under one crashed the process (SIGSEGV, ~1 in 8 stops on a busy
+        # machine). Join the pool first.
+        pool = getattr(executor, '_executor', None)
+        if pool is not None:
+            pool.shutdown(wait=True)
         node.destroy_node()
         rclpy.try_shutdown()
     return 0
