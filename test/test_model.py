@@ -11,7 +11,7 @@ from fhld_ros.model.anchors import inference_anchors, training_anchors
 from fhld_ros.model.cell_targets import cell_targets
 from fhld_ros.model.config import FhldConfig
 from fhld_ros.model.curve import AdaptiveAxisCurve, FixedAxisCurve
-from fhld_ros.model.detector import Detections, FhldDetector
+from fhld_ros.model.detector import Detections, FhldDetector, with_segment_ends
 from fhld_ros.model.inference import TracedFeatures
 from fhld_ros.model.roi_align import roi_align
 from fhld_ros.model.targets import prepare_targets, resample_polyline, to_metres, to_normalised
@@ -245,6 +245,20 @@ def test_detect_returns_ordered_lanes_in_window_metres():
     assert model.training  # detect leaves the mode as it found it
     none = model.detect(torch.rand(1, 4, 128, 128), score_threshold=1.01)[0]
     assert none.lanes == [] and none.confidences.shape == (0,)
+
+
+@pytest.mark.parametrize('sign', [1.0, -1.0])
+def test_lane_ends_reach_the_outer_ends_of_the_end_segments(sign):
+    # cells along u at 0.2 .. 0.8, segments 0.1 long: the lane runs from 0.15 to 0.85
+    centres = np.stack([np.linspace(0.2, 0.8, 4), np.full(4, 0.5), np.arange(4.0)], -1)
+    reach = np.tile([[sign * 0.05, 0.0]], (4, 1))  # a heading's sign is arbitrary
+    lane = with_segment_ends(centres, reach)
+    assert lane.shape == (6, 3)
+    np.testing.assert_allclose(lane[1:-1], centres)
+    np.testing.assert_allclose(lane[[0, -1]], [[0.15, 0.5, 0.0], [0.85, 0.5, 3.0]])
+    # ends beyond the window stop at its border
+    edge = with_segment_ends(centres * [1.2, 1, 1] - [0.1, 0, 0], reach * 3)
+    assert edge[:, :2].min() >= 0.0 and edge[:, :2].max() <= 1.0
 
 
 def test_default_model_size_and_input_spec():

@@ -113,6 +113,7 @@ class FhldDetector(nn.Module):
         keep = anchors.valid & (local.logits.sigmoid() >= cfg.local_score_threshold)
         keep &= ((local.centre >= 0) & (local.centre <= 1)).all(-1)
         points = torch.cat([local.centre, local.z.unsqueeze(-1)], -1).cpu().numpy()
+        reach = (0.5 * local.length.unsqueeze(-1) * local.heading).cpu().numpy()
         keep_np, batch_np = keep.cpu().numpy(), batch.cpu().numpy()
         conf_np = prob[batch, query].cpu().numpy()
         if curve_points:
@@ -123,6 +124,7 @@ class FhldDetector(nn.Module):
             lane = points[i][keep_np[i]]
             if len(lane) < 2:
                 continue
+            lane = with_segment_ends(lane, reach[i][keep_np[i]])
             det = results[item]
             det.lanes.append(to_metres(lane, cfg.window_m))
             det.confidences = np.append(det.confidences, conf_np[i])
@@ -133,6 +135,23 @@ class FhldDetector(nn.Module):
                 det.lanes = refine_lane_heights(det.lanes, raster[item].cpu().numpy(),
                                                 cfg.resolution_m)
         return results
+
+
+def with_segment_ends(centres: np.ndarray, reach: np.ndarray) -> np.ndarray:
+    """Ordered cell centres (K, 3) u, v, z plus the outer ends of the first and last segments.
+
+    A lane's first and last cells carry segments reaching past their centres (reach: half the
+    segment, (K, 2) along its heading, sign arbitrary); a lane of centres alone stops short by
+    half a segment at each end. The end points keep their cell's height.
+    """
+    ends = []
+    for cell, inward in ((0, 1), (-1, -2)):
+        step = reach[cell] if reach[cell] @ (centres[cell, :2] - centres[inward, :2]) > 0 \
+            else -reach[cell]
+        end = centres[cell].copy()
+        end[:2] = np.clip(end[:2] + step, 0.0, 1.0)
+        ends.append(end)
+    return np.concatenate([ends[0][None], centres, ends[1][None]])
 
 
 def build_default_detector() -> FhldDetector:
