@@ -166,8 +166,13 @@ def build_default_detector() -> FhldDetector:
 
 
 def bench_model() -> dict[str, float]:
-    """`fhld bench model`: detector forward + detect post-processing, 640 x 640, batch 1."""
+    """`fhld bench model`: forward + detect post-processing, 640 x 640, batch 1.
+
+    model_ms is the path the node and `fhld replay` serve with (TracedFeatures, inference.py);
+    model_eager_ms the plain module.
+    """
     from fhld_ros.bench import time_median
+    from fhld_ros.model.inference import TracedFeatures
 
     model = build_default_detector().eval()
     cfg = model.cfg
@@ -178,5 +183,9 @@ def bench_model() -> dict[str, float]:
         prob = model(raster)['logits'].softmax(-1)[0, :, 1]
     # Post-processing cost grows with the lanes found: time it with 8, the most a window holds.
     threshold = float(prob.topk(min(8, len(prob))).values[-1])
-    return {'model_ms': time_median(lambda: model.detect(raster, threshold), repeats=20,
-                                    warmup=3)}
+    traced = TracedFeatures(model)
+    return {'model_ms': time_median(lambda: model.detect(raster, threshold,
+                                                         features=traced(raster)),
+                                    repeats=20, warmup=3),
+            'model_eager_ms': time_median(lambda: model.detect(raster, threshold), repeats=20,
+                                          warmup=3)}
