@@ -62,3 +62,16 @@ def test_path_follows_the_lane_with_headings(family):
     q = path.poses[0].pose.orientation
     assert 2 * np.arctan2(q.z, q.w) == pytest.approx(np.pi / 4)
     assert len(lane_to_path(family, family.header(3, 'odom'), None).poses) == 0
+
+
+def test_bench_reads_the_stamp_of_a_serialised_marker_array():
+    from rclpy.serialization import serialize_message
+
+    from fhld_ros.bench_e2e import marker_array_stamp_ns
+    family = rclpy_family()
+    stamp = 1_700_000_123_456_789_012
+    msg = lanes_to_marker_array(family, family.header(stamp, 'odom'), _lanes(), [0.9, 0.8],
+                                [1, 2], OUTLINE)
+    assert marker_array_stamp_ns(serialize_message(msg)) == stamp
+    with pytest.raises(ValueError, match='without markers'):
+        marker_array_stamp_ns(serialize_message(family.cls('visualization_msgs/msg/MarkerArray')()))
