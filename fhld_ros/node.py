@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import gc
 import sys
 import threading
 import time
@@ -45,6 +46,10 @@ def main(args: list[str] | None = None) -> int:
     # up in every torch op and, at the default 5 ms switch interval, waited that long to get it
     # back each time (measured: detections 2x slower in the node than alone).
     sys.setswitchinterval(GIL_SWITCH_SEC)
+    # A full garbage collection walks every object torch and rclpy created at start-up (~200k,
+    # ~95 ms here) holding the GIL, and stalled callbacks at random (measured: cloud callbacks
+    # up to 60-100 ms late). Frozen objects are left out of collections.
+    gc.freeze()
     executor = MultiThreadedExecutor(num_threads=3)
     executor.add_node(node)
     try:
