@@ -132,8 +132,8 @@ def make_node():
             self.last_detected_stamp_ns: int | None = None
             self.create_timer(1.0 / max(p.rate_hz, POLL_HZ), self.on_timer,
                               callback_group=detection)
-            # The cloud callback wakes detection at once (measured: the 50 Hz poll alone left a
-            # sweep waiting 20-37 ms at the median).
+            # The cloud callback wakes detection at once; with the poll alone a sweep waited up
+            # to a poll period for its detection to start.
             self.wake_detection = self.create_guard_condition(self.on_timer,
                                                               callback_group=detection)
             wall = Clock(clock_type=ClockType.STEADY_TIME)
