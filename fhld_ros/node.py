@@ -130,11 +130,11 @@ def make_node():
             # detections behind arrivals (measured: +40 ms of waiting per sweep).
             self.min_interval_ns = int(0.9e9 / p.rate_hz)  # slack for stamp jitter
             self.last_detected_stamp_ns: int | None = None
-            self.create_timer(1.0 / max(p.rate_hz, POLL_HZ), self.on_timer,
+            self.create_timer(1.0 / max(p.rate_hz, POLL_HZ), self.on_detection_due,
                               callback_group=detection)
             # The cloud callback wakes detection at once; with the poll alone a sweep waited up
             # to a poll period for its detection to start.
-            self.wake_detection = self.create_guard_condition(self.on_timer,
+            self.wake_detection = self.create_guard_condition(self.on_detection_due,
                                                               callback_group=detection)
             wall = Clock(clock_type=ClockType.STEADY_TIME)
             self.create_timer(1.0, self.publish_diagnostics,
@@ -215,7 +215,7 @@ def make_node():
                 self.get_logger().info(f'no odometry on {self.params.odom_topic} yet: '
                                        'detecting per sweep in the cloud frame')
 
-        def on_timer(self) -> None:
+        def on_detection_due(self) -> None:
             if not self.detecting.acquire(blocking=False):
                 return  # the previous detection is still running: never queue
             try:
