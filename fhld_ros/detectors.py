@@ -25,10 +25,10 @@ def fhld_detector(params: DetectorParams) -> Detector:
 
     from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT, CheckpointError, load_checkpoint
     from fhld_ros.model.config import FhldConfig
-    from fhld_ros.model.inference import TracedFeatures
+    from fhld_ros.model.inference import serving_features
     path = params.checkpoint or DEFAULT_CHECKPOINT
-    if params.model_threads > 0:
-        torch.set_num_threads(params.model_threads)
+    # torch runs the post-processing (and TorchScript): small ops, fastest on one thread here
+    torch.set_num_threads(params.model_threads if params.model_threads > 0 else 1)
     if params.device == 'cuda' and not torch.cuda.is_available():
         raise CliError("device 'cuda' was asked for but torch sees no CUDA device")
     expect = FhldConfig(size_px=params.size_px, resolution_m=params.resolution_m)
@@ -37,7 +37,13 @@ def fhld_detector(params: DetectorParams) -> Detector:
     except CheckpointError as exc:
         raise CliError(str(exc)) from exc
     model = loaded.model.to(params.device).eval()
-    features = TracedFeatures(model)
+    try:
+        features = serving_features(model, params.device, params.model_runtime,
+                                    params.model_threads)
+    except ValueError as exc:
+        raise CliError(str(exc)) from exc
+    cfg = model.cfg  # build the graph now, not on the first sweep (export/trace takes ~2 s)
+    features(torch.zeros(1, cfg.in_channels, cfg.size_px, cfg.size_px, device=params.device))
 
     def detect(window: BevWindow) -> tuple[list[np.ndarray], np.ndarray]:
         raster = torch.from_numpy(window.raster).unsqueeze(0).to(params.device)

@@ -18,7 +18,8 @@ class DetectorParams:
     detector: str = 'fhld'
     checkpoint: str = ''
     device: str = 'cpu'
-    model_threads: int = 1
+    model_threads: int = 0
+    model_runtime: str = 'auto'
     score_threshold: float = 0.5
     refine_heights: bool = True
     size_px: int = 640
@@ -36,6 +37,10 @@ class DetectorParams:
             problems.append(f"detector must be 'fhld' or 'classical', not {self.detector!r}")
         if self.device not in ('cpu', 'cuda'):
             problems.append(f"device must be 'cpu' or 'cuda', not {self.device!r}")
+        if self.model_runtime not in ('auto', 'onnxruntime', 'torchscript'):
+            problems.append("model_runtime must be 'auto', 'onnxruntime' or 'torchscript'")
+        if self.model_runtime == 'onnxruntime' and self.device != 'cpu':
+            problems.append("model_runtime 'onnxruntime' needs device 'cpu'")
         if self.input_reliability not in ('auto', 'reliable', 'best_effort'):
             problems.append("input_reliability must be 'auto', 'reliable' or 'best_effort'")
         if not isinstance(self.refine_heights, bool):
@@ -57,8 +62,10 @@ DESCRIPTIONS: dict[str, str] = {
     'detector': "'fhld' (the learned model) or 'classical' (rule-based baseline)",
     'checkpoint': 'FHLD weights (.pt); empty = the shipped fhld_ros/checkpoints/fhld.pt',
     'device': "'cpu' or 'cuda' for the model",
-    'model_threads': 'torch CPU threads for the model (0 = torch default); 1 is fastest when '
-                     'decoding and publishing share a small CPU',
+    'model_threads': 'CPU threads for the model; 0 = auto: one per core with ONNX Runtime, 1 '
+                     'with TorchScript (whose OpenMP threads stalled beside the executor)',
+    'model_runtime': "how the model runs: 'auto' (ONNX Runtime on the CPU when installed, "
+                     "else TorchScript), 'onnxruntime' (CPU) or 'torchscript'",
     'score_threshold': 'minimum lane confidence to publish',
     'refine_heights': 'FHLD lane heights follow the measured road surface (robust fit of the '
                       "raster's minimum heights); false keeps the model's own heights",

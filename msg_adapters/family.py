@@ -7,7 +7,7 @@ Unspecified fields get their ROS defaults in both families (rosbags dataclasses 
 from __future__ import annotations
 
 import importlib
-from functools import lru_cache
+from functools import lru_cache, cache
 from typing import Any
 
 import numpy as np
@@ -48,11 +48,17 @@ class RclpyFamily(MessageFamily):
     name = 'rclpy'
 
     def cls(self, msgtype: str) -> type:
-        package, kind, type_name = msgtype.split('/')
-        return getattr(importlib.import_module(f'{package}.{kind}'), type_name)
+        return _rclpy_class(msgtype)
 
     def new(self, msgtype: str, **fields: Any) -> Any:
         return self.cls(msgtype)(**fields)
+
+
+@cache
+def _rclpy_class(msgtype: str) -> type:
+    # cached: building a /lanes message asks for ~4000 classes, an import lookup each
+    package, kind, type_name = msgtype.split('/')
+    return getattr(importlib.import_module(f'{package}.{kind}'), type_name)
 
 
 class RosbagsFamily(MessageFamily):

@@ -122,13 +122,12 @@ def lane_to_path(family: MessageFamily, header: Any, lane: np.ndarray | None) ->
     xyz = np.asarray(lane, dtype=np.float64)
     step = np.diff(xyz[:, :2], axis=0) if len(xyz) > 1 else np.array([[1.0, 0.0]])
     step = np.vstack([step, step[-1:]])  # the last point keeps the last segment's heading
-    yaw = np.arctan2(step[:, 1], step[:, 0])
+    half = np.arctan2(step[:, 1], step[:, 0]) / 2
     poses = []
-    for (x, y, z), half in zip(xyz.tolist(), (yaw / 2).tolist()):
+    for (x, y, z), qz, qw in zip(xyz.tolist(), np.sin(half).tolist(), np.cos(half).tolist()):
         pose = family.new(
             'geometry_msgs/msg/Pose',
             position=family.new('geometry_msgs/msg/Point', x=x, y=y, z=z),
-            orientation=family.new('geometry_msgs/msg/Quaternion', z=float(np.sin(half)),
-                                   w=float(np.cos(half))))
+            orientation=family.new('geometry_msgs/msg/Quaternion', z=qz, w=qw))
         poses.append(family.new('geometry_msgs/msg/PoseStamped', header=header, pose=pose))
     return family.new('nav_msgs/msg/Path', header=header, poses=poses)

@@ -12,9 +12,10 @@ from fhld_ros.model.cell_targets import cell_targets
 from fhld_ros.model.config import FhldConfig
 from fhld_ros.model.curve import AdaptiveAxisCurve, FixedAxisCurve
 from fhld_ros.model.detector import Detections, FhldDetector, with_segment_ends
-from fhld_ros.model.inference import TracedFeatures
+from fhld_ros.model.inference import OnnxFeatures, TracedFeatures, serving_features
 from fhld_ros.model.roi_align import roi_align
 from fhld_ros.model.targets import prepare_targets, resample_polyline, to_metres, to_normalised
+from fhld_ros.parameters import DetectorParams
 from model_fixtures import small_config
 
 CURVES = [AdaptiveAxisCurve(), FixedAxisCurve()]
@@ -273,19 +274,31 @@ def test_default_model_size_and_input_spec():
     assert out['curves'].shape == (1, 15, 12)
 
 
-def test_traced_features_match_eager_and_give_the_same_lanes():
+@pytest.mark.parametrize('runner', [TracedFeatures, OnnxFeatures])
+def test_serving_features_match_eager_and_give_the_same_lanes(runner):
     torch.manual_seed(2)
     model = FhldDetector(small_config(local_score_threshold=0.0)).eval()
     raster = torch.rand(1, 4, 128, 128)
-    traced = TracedFeatures(model)
+    served = runner(model)
     with torch.no_grad():
-        for eager, graph in zip(model.features(raster), traced(raster)):
+        for eager, graph in zip(model.features(raster), served(raster)):
             torch.testing.assert_close(graph, eager, rtol=1e-4, atol=1e-5)
-    assert traced.graph is not None and traced.shape == (1, 4, 128, 128)
+    assert served.graph is not None and served.shape == (1, 4, 128, 128)
     eager_det = model.detect(raster, score_threshold=0.0)[0]
-    graph_det = model.detect(raster, score_threshold=0.0, features=traced(raster))[0]
+    graph_det = model.detect(raster, score_threshold=0.0, features=served(raster))[0]
     assert len(eager_det.lanes) == len(graph_det.lanes) >= 1
     for a, b in zip(eager_det.lanes, graph_det.lanes):
         np.testing.assert_allclose(a, b, atol=1e-4)
     other = torch.rand(2, 4, 128, 128)  # another shape: eager, same result
-    torch.testing.assert_close(traced(other)[2], model.features(other)[2])
+    torch.testing.assert_close(served(other)[2], model.features(other)[2])
+
+
+def test_serving_runtime_choice():
+    model = FhldDetector(small_config()).eval()
+    assert isinstance(serving_features(model), OnnxFeatures)  # onnxruntime is a dependency
+    assert isinstance(serving_features(model, runtime='torchscript'), TracedFeatures)
+    assert isinstance(serving_features(model, device='cuda'), TracedFeatures)
+    with pytest.raises(ValueError, match='model_runtime'):
+        DetectorParams(model_runtime='tensorrt')
+    with pytest.raises(ValueError, match="needs device 'cpu'"):
+        DetectorParams(model_runtime='onnxruntime', device='cuda')

@@ -94,7 +94,7 @@ class FhldDetector(nn.Module):
 
         refine_heights: lane heights follow the measured surface in the raster (heights.py);
         False keeps the local branch's own heights. features: this raster's features() computed
-        elsewhere (TracedFeatures in inference.py).
+        elsewhere (serving_features in inference.py).
         """
         if features is None:
             was_training = self.training
@@ -166,13 +166,14 @@ def build_default_detector() -> FhldDetector:
 
 
 def bench_model() -> dict[str, float]:
-    """`fhld bench model`: forward + detect post-processing, 640 x 640, batch 1.
+    """`fhld bench model`: forward + detect post-processing, 640 x 640, batch 1, on the CPU.
 
-    model_ms is the path the node and `fhld replay` serve with (TracedFeatures, inference.py);
-    model_eager_ms the plain module.
+    model_ms is the path the node and `fhld replay` serve with (serving_features in
+    inference.py: ONNX Runtime when installed); model_torchscript_ms and model_eager_ms the
+    alternatives. Threads as the node runs them: the caller's torch setting, 1 for ONNX Runtime.
     """
     from fhld_ros.bench import time_median
-    from fhld_ros.model.inference import TracedFeatures
+    from fhld_ros.model.inference import TracedFeatures, serving_features
 
     model = build_default_detector().eval()
     cfg = model.cfg
@@ -183,9 +184,12 @@ def bench_model() -> dict[str, float]:
         prob = model(raster)['logits'].softmax(-1)[0, :, 1]
     # Post-processing cost grows with the lanes found: time it with 8, the most a window holds.
     threshold = float(prob.topk(min(8, len(prob))).values[-1])
-    traced = TracedFeatures(model)
+    served, traced = serving_features(model), TracedFeatures(model)
     return {'model_ms': time_median(lambda: model.detect(raster, threshold,
-                                                         features=traced(raster)),
+                                                         features=served(raster)),
                                     repeats=20, warmup=3),
+            'model_torchscript_ms': time_median(lambda: model.detect(raster, threshold,
+                                                                     features=traced(raster)),
+                                                repeats=20, warmup=3),
             'model_eager_ms': time_median(lambda: model.detect(raster, threshold), repeats=20,
                                           warmup=3)}

@@ -39,26 +39,45 @@ def surface_heights(raster: np.ndarray, xy: np.ndarray, resolution_m: float) -> 
     rows = np.clip(cell[:, 1, None] + offsets[None, :], 0, size - 1)
     # (P, 4, k, k) patches; only these cells are decoded, not the whole raster
     patches = np.moveaxis(raster[:, rows[:, :, None], cols[:, None, :]], 0, 1)
-    patch = np.sort(min_height_m(patches).reshape(len(xy), -1), axis=1)  # NaN sorts last
-    valid = np.count_nonzero(~np.isnan(patch), axis=1)
-    index = np.arange(len(xy))
-    # median of the valid values: the middle one or two (NaN when none is valid)
-    return 0.5 * (patch[index, np.maximum(valid - 1, 0) // 2] + patch[index, valid // 2])
+    return _row_medians(min_height_m(patches).reshape(len(xy), -1))
 
 
-def robust_profile(arc: np.ndarray, z: np.ndarray) -> np.ndarray | None:
-    """Robust polynomial z(arc) through the finite samples; None with too few of them."""
-    ok = np.isfinite(z)
-    if ok.sum() <= FIT_DEGREE:
-        return None
-    s, y = arc[ok], z[ok]
-    weights = np.ones_like(y)
+def _row_medians(values: np.ndarray) -> np.ndarray:
+    """Median of the non-NaN values of each row of (R, K); NaN for a row without any."""
+    ordered = np.sort(values, axis=1)  # NaN sorts last
+    valid = np.count_nonzero(~np.isnan(ordered), axis=1)
+    index = np.arange(len(ordered))
+    # the middle one or two valid values
+    return 0.5 * (ordered[index, np.maximum(valid - 1, 0) // 2] + ordered[index, valid // 2])
+
+
+def robust_profiles(arc: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Robust polynomials z(arc) through the finite samples of each row of (L, K) arrays.
+
+    All lanes at once: iteratively reweighted least squares (weights on the unsquared
+    residuals, as np.polyfit takes them) in arc length scaled to [0, 1] per lane, which
+    spans the same cubics and keeps the 4 x 4 normal equations well conditioned. Returns the
+    fitted heights (L, K) and which rows had enough samples (more than FIT_DEGREE).
+    """
+    ok = np.isfinite(z) & np.isfinite(arc)
+    fitted = ok.sum(axis=1) > FIT_DEGREE
+    span = np.nanmax(np.where(ok, arc, np.nan), axis=1, initial=0.0)  # all-NaN rows: 0
+    s = np.where(ok, arc, 0.0) / np.maximum(span, 1e-9)[:, None]
+    basis = s[..., None] ** np.arange(FIT_DEGREE, -1, -1)  # (L, K, degree + 1)
+    y = np.where(ok, z, 0.0)
+    weights = ok.astype(np.float64)
     for _ in range(REWEIGHT_ROUNDS):
-        coef = np.polyfit(s, y, FIT_DEGREE, w=weights)
-        resid = np.abs(y - np.polyval(coef, s))
-        sigma = max(1.4826 * float(np.median(resid)), MIN_SIGMA_M)
-        weights = 1.0 / np.maximum(1.0, resid / (2.0 * sigma))
-    return np.polyval(coef, arc)
+        w2 = weights ** 2
+        normal = np.einsum('lki,lk,lkj->lij', basis, w2, basis)
+        coef = np.einsum('lij,lj->li', np.linalg.pinv(normal), np.einsum('lki,lk->li', basis,
+                                                                           w2 * y))
+        resid = np.abs(y - np.einsum('lki,li->lk', basis, coef))
+        # fmax: a row without samples has a NaN median
+        sigma = np.fmax(1.4826 * _row_medians(np.where(ok, resid, np.nan)), MIN_SIGMA_M)
+        weights = np.where(ok, 1.0 / np.maximum(1.0, resid / (2.0 * sigma[:, None])), 0.0)
+    scaled = np.where(np.isfinite(arc), arc, 0.0) / np.maximum(span, 1e-9)[:, None]
+    return np.einsum('lki,li->lk', scaled[..., None] ** np.arange(FIT_DEGREE, -1, -1), coef), \
+        fitted
 
 
 def refine_lane_heights(lanes: list[np.ndarray], raster: np.ndarray,
@@ -66,15 +85,21 @@ def refine_lane_heights(lanes: list[np.ndarray], raster: np.ndarray,
     """New (K, 3) window-frame lanes whose z follows the measured surface of raster (4, H, W)."""
     if not lanes:
         return []
-    measured_all = surface_heights(raster, np.concatenate(lanes)[:, :2], resolution_m)
-    ends = np.cumsum([len(lane) for lane in lanes])[:-1]
-    refined = []
-    for lane, measured in zip(lanes, np.split(measured_all, ends)):  # one iteration per lane
-        measured[np.abs(measured - lane[:, 2]) > GATE_M] = np.nan
-        arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(lane[:, :2], axis=0), axis=1))]
-        profile = robust_profile(arc, measured)
-        out = lane.copy()
-        if profile is not None:
-            out[:, 2] = profile
-        refined.append(out)
+    points = np.concatenate(lanes)
+    measured = surface_heights(raster, points[:, :2], resolution_m)
+    measured[np.abs(measured - points[:, 2]) > GATE_M] = np.nan
+    # lanes as rows of (L, K) arrays padded with NaN: all profiles fitted at once
+    lengths = np.array([len(lane) for lane in lanes])
+    row = np.repeat(np.arange(len(lanes)), lengths)
+    col = np.arange(len(points)) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    step = np.linalg.norm(np.diff(points[:, :2], axis=0), axis=1)
+    arc_flat = np.cumsum(np.r_[0.0, step])
+    arc_flat -= np.repeat(arc_flat[np.cumsum(lengths) - lengths], lengths)  # from each start
+    arc = np.full((len(lanes), lengths.max()), np.nan)
+    z = arc.copy()
+    arc[row, col], z[row, col] = arc_flat, measured
+    profiles, fitted = robust_profiles(arc, z)
+    refined = [lane.copy() for lane in lanes]
+    for index in np.flatnonzero(fitted):  # lanes with too few samples keep the model's z
+        refined[index][:, 2] = profiles[index, :lengths[index]]
     return refined
