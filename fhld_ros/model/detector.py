@@ -169,9 +169,11 @@ def bench_model() -> dict[str, float]:
     """`fhld bench model`: forward + detect post-processing, 640 x 640, batch 1, on the CPU.
 
     model_ms is the path the node and `fhld replay` serve with (serving_features in
-    inference.py: ONNX Runtime when installed); model_torchscript_ms and model_eager_ms the
-    alternatives. Threads as the node runs them: the caller's torch setting, 1 for ONNX Runtime.
+    inference.py: ONNX Runtime when installed, one thread per core as the node's default);
+    model_torchscript_ms and model_eager_ms the alternatives, on the caller's torch threads.
     """
+    import functools
+
     from fhld_ros.bench import time_median
     from fhld_ros.model.inference import TracedFeatures, serving_features
 
@@ -184,12 +186,10 @@ def bench_model() -> dict[str, float]:
         prob = model(raster)['logits'].softmax(-1)[0, :, 1]
     # Post-processing cost grows with the lanes found: time it with 8, the most a window holds.
     threshold = float(prob.topk(min(8, len(prob))).values[-1])
-    served, traced = serving_features(model), TracedFeatures(model)
-    return {'model_ms': time_median(lambda: model.detect(raster, threshold,
-                                                         features=served(raster)),
-                                    repeats=20, warmup=3),
-            'model_torchscript_ms': time_median(lambda: model.detect(raster, threshold,
-                                                                     features=traced(raster)),
-                                                repeats=20, warmup=3),
-            'model_eager_ms': time_median(lambda: model.detect(raster, threshold), repeats=20,
-                                          warmup=3)}
+    runners = {'model_ms': serving_features(model), 'model_torchscript_ms': TracedFeatures(model),
+               'model_eager_ms': None}  # None: detect() runs the plain module
+
+    def detect_with(run) -> None:
+        model.detect(raster, threshold, features=None if run is None else run(raster))
+    return {name: time_median(functools.partial(detect_with, run), repeats=20, warmup=3)
+            for name, run in runners.items()}

@@ -60,24 +60,22 @@ def robust_profiles(arc: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndar
     fitted heights (L, K) and which rows had enough samples (more than FIT_DEGREE).
     """
     ok = np.isfinite(z) & np.isfinite(arc)
-    fitted = ok.sum(axis=1) > FIT_DEGREE
-    span = np.nanmax(np.where(ok, arc, np.nan), axis=1, initial=0.0)  # all-NaN rows: 0
-    s = np.where(ok, arc, 0.0) / np.maximum(span, 1e-9)[:, None]
-    basis = s[..., None] ** np.arange(FIT_DEGREE, -1, -1)  # (L, K, degree + 1)
+    s = np.where(np.isfinite(arc), arc, 0.0)
+    s /= np.maximum(s.max(axis=1, keepdims=True), 1e-9)
+    # (L, K, degree + 1); the samples outside ok get weight 0, so one basis serves fit and output
+    basis = s[..., None] ** np.arange(FIT_DEGREE, -1, -1)
     y = np.where(ok, z, 0.0)
     weights = ok.astype(np.float64)
     for _ in range(REWEIGHT_ROUNDS):
         w2 = weights ** 2
         normal = np.einsum('lki,lk,lkj->lij', basis, w2, basis)
-        coef = np.einsum('lij,lj->li', np.linalg.pinv(normal), np.einsum('lki,lk->li', basis,
-                                                                           w2 * y))
+        rhs = np.einsum('lki,lk->li', basis, w2 * y)
+        coef = np.einsum('lij,lj->li', np.linalg.pinv(normal), rhs)
         resid = np.abs(y - np.einsum('lki,li->lk', basis, coef))
         # fmax: a row without samples has a NaN median
         sigma = np.fmax(1.4826 * _row_medians(np.where(ok, resid, np.nan)), MIN_SIGMA_M)
         weights = np.where(ok, 1.0 / np.maximum(1.0, resid / (2.0 * sigma[:, None])), 0.0)
-    scaled = np.where(np.isfinite(arc), arc, 0.0) / np.maximum(span, 1e-9)[:, None]
-    return np.einsum('lki,li->lk', scaled[..., None] ** np.arange(FIT_DEGREE, -1, -1), coef), \
-        fitted
+    return np.einsum('lki,li->lk', basis, coef), ok.sum(axis=1) > FIT_DEGREE
 
 
 def refine_lane_heights(lanes: list[np.ndarray], raster: np.ndarray,
@@ -90,11 +88,12 @@ def refine_lane_heights(lanes: list[np.ndarray], raster: np.ndarray,
     measured[np.abs(measured - points[:, 2]) > GATE_M] = np.nan
     # lanes as rows of (L, K) arrays padded with NaN: all profiles fitted at once
     lengths = np.array([len(lane) for lane in lanes])
+    starts = np.repeat(np.cumsum(lengths) - lengths, lengths)  # per point: its lane's start
     row = np.repeat(np.arange(len(lanes)), lengths)
-    col = np.arange(len(points)) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    col = np.arange(len(points)) - starts
     step = np.linalg.norm(np.diff(points[:, :2], axis=0), axis=1)
     arc_flat = np.cumsum(np.r_[0.0, step])
-    arc_flat -= np.repeat(arc_flat[np.cumsum(lengths) - lengths], lengths)  # from each start
+    arc_flat -= arc_flat[starts]  # from each lane's start
     arc = np.full((len(lanes), lengths.max()), np.nan)
     z = arc.copy()
     arc[row, col], z[row, col] = arc_flat, measured
