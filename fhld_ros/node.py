@@ -33,7 +33,9 @@ STAGES = ('ingest', 'wait', 'raster', 'detect', 'publish')
 
 def main(args: list[str] | None = None) -> int:
     import rclpy
-    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+    from rclpy.executors import ExternalShutdownException
+
+    from fhld_ros.executor import HandoffExecutor
 
     rclpy.init(args=args)
     try:
@@ -50,7 +52,8 @@ def main(args: list[str] | None = None) -> int:
     # ~95 ms here) holding the GIL, and stalled callbacks at random (measured: cloud callbacks
     # up to 60-100 ms late). Frozen objects are left out of collections.
     gc.freeze()
-    executor = MultiThreadedExecutor(num_threads=3)
+    # A MultiThreadedExecutor that cannot starve its workers (see fhld_ros/executor.py)
+    executor = HandoffExecutor(num_threads=3)
     executor.add_node(node)
     try:
         executor.spin()
