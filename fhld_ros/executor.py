@@ -10,8 +10,10 @@ short timeout passes when all workers are busy), so it cannot starve them.
 """
 from __future__ import annotations
 
+import contextlib
 import threading
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 from rclpy.executors import (ConditionReachedException, ExternalShutdownException,
                              MultiThreadedExecutor, ShutdownException, TimeoutException)
@@ -22,10 +24,22 @@ HANDOFF_TIMEOUT_SEC = 0.005
 
 
 class HandoffExecutor(MultiThreadedExecutor):
-    """MultiThreadedExecutor whose spin waits until each submitted callback has started."""
+    """MultiThreadedExecutor whose spin waits until each submitted callback has started.
+
+    It relies on the base class's pool and list of running handlers (private in rclpy); with an
+    rclpy that has neither it behaves exactly as the base class.
+    """
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self._handoff = (isinstance(getattr(self, '_executor', None), ThreadPoolExecutor)
+                         and isinstance(getattr(self, '_futures', None), list))
 
     def _spin_once_impl(self, timeout_sec: float | None = None,
                         wait_condition: Callable[[], bool] = lambda: False) -> None:
+        if not self._handoff:
+            super()._spin_once_impl(timeout_sec, wait_condition)
+            return
         try:
             handler, _, _ = self.wait_for_ready_callbacks(timeout_sec, None, wait_condition)
         except (ExternalShutdownException, ShutdownException, TimeoutException,
@@ -40,8 +54,10 @@ class HandoffExecutor(MultiThreadedExecutor):
         self._executor.submit(run)
         started.wait(HANDOFF_TIMEOUT_SEC)
         # as the base class: finished handlers are dropped, their exceptions raised here
-        self._futures.append(handler)
-        for future in self._futures[:]:
-            if future.done():
+        with getattr(self, '_futures_lock', None) or contextlib.nullcontext():
+            self._futures.append(handler)
+            done = [future for future in self._futures if future.done()]
+            for future in done:
                 self._futures.remove(future)
-                future.result()
+        for future in done:
+            future.result()
