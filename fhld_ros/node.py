@@ -2,10 +2,10 @@
 
 The cloud callback only decodes and inserts into the rolling grid, then wakes the detection
 callback (a guard condition; so does odometry that lets a waiting sweep in); a timer (ROS time,
-so use_sim_time works) polls as well. Both run
-in their own callback group and never queue up: a wake-up with no new sweep, or during a
-running detection, is skipped, and a detection that ends with a newer sweep waiting starts on it
-at once. A bad message is dropped, counted and warned about (throttled).
+so use_sim_time works) polls as well. Both run in their own callback group and never queue up:
+a wake-up with no new sweep, or during a running detection, is skipped, and a detection that
+ends with a newer sweep waiting starts on it at once. A bad message is dropped, counted and
+warned about (throttled).
 """
 from __future__ import annotations
 
