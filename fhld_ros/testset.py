@@ -11,7 +11,8 @@ cover every sensor preset x topology pair. Each window goes through the node's o
 * `fhld-model-z` the same lanes with the local branch's own heights (no refinement)
 * `fhld-global` the same model's global curves alone (the paper's "without local branch" row)
 
-Scores: the FHLD point metric and the ONCE-3DLanes lane metric, counts summed over windows.
+Scores: the FHLD point metric and the ONCE-3DLanes lane metric, counts summed over windows;
+the point metric's F1 also per sensor preset and per topology setting.
 """
 from __future__ import annotations
 
@@ -136,7 +137,25 @@ def summarise(results: list[dict], detectors: list[str]) -> dict:
         report['detectors'][name] = {
             'point': {k: round(v, 2) for k, v in point.scores().items()},
             'once': {k: round(v, 4 if k == 'CD' else 2) for k, v in once.scores().items()}}
+    for key in ('sensor', 'topology'):
+        report[f'by_{key}'] = _point_f1_by(results, detectors, key)
     return report
+
+
+def _point_f1_by(results: list[dict], detectors: list[str], key: str) -> dict:
+    """{scenario value: {'windows': n, detector: {'F1@10': .., 'F1@30': ..}}}."""
+    from fhld_ros import metrics
+    groups: dict[str, list[dict]] = {}
+    for r in results:
+        groups.setdefault(str(r['scenario'][key]), []).append(r)
+    table = {}
+    for value, group in sorted(groups.items()):
+        row: dict = {'windows': sum(r['windows'] for r in group)}
+        for name in detectors:
+            scores = sum((r['point'][name] for r in group), metrics.PointCounts()).scores()
+            row[name] = {k: round(v, 2) for k, v in scores.items() if k.startswith('F1')}
+        table[value] = row
+    return table
 
 
 def print_table(report: dict) -> None:
@@ -150,3 +169,10 @@ def print_table(report: dict) -> None:
         print(f'{name:<13} {p["P@10"]:6.2f} {p["R@10"]:6.2f} {p["F1@10"]:6.2f} '
               f'{p["P@30"]:6.2f} {p["R@30"]:6.2f} {p["F1@30"]:6.2f} | {o["P"]:6.2f} '
               f'{o["R"]:6.2f} {o["F1"]:6.2f} {o["CD"]:6.3f}')
+    names = list(report['detectors'])
+    for key in ('sensor', 'topology'):
+        print(f'\npoint F1@10 / F1@30 by {key}')
+        print(f'{key:<14} {"windows":>7} ' + ' '.join(f'{n:>15}' for n in names))
+        for value, row in report[f'by_{key}'].items():
+            cells = ' '.join(f'{row[n]["F1@10"]:7.2f} {row[n]["F1@30"]:7.2f}' for n in names)
+            print(f'{value:<14} {row["windows"]:>7} {cells}')
