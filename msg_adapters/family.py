@@ -7,7 +7,7 @@ Unspecified fields get their ROS defaults in both families (rosbags dataclasses 
 from __future__ import annotations
 
 import importlib
-from functools import lru_cache, cache
+from functools import cache, lru_cache
 from typing import Any
 
 import numpy as np

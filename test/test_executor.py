@@ -7,12 +7,6 @@ import time
 import pytest
 
 
-def _spin_in_thread(executor) -> threading.Thread:
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
-    return spinner
-
-
 def test_callbacks_in_other_groups_run_while_one_blocks(ros_env, rclpy_context):
     """A timer callback waits for a subscription callback: needs two workers at once."""
     import rclpy
@@ -35,7 +29,8 @@ def test_callbacks_in_other_groups_run_while_one_blocks(ros_env, rclpy_context):
     publisher = node.create_publisher(String, 'handoff', 10)
     executor = HandoffExecutor(num_threads=3, context=rclpy_context)
     executor.add_node(node)
-    spinner = _spin_in_thread(executor)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
     try:
         deadline = time.monotonic() + 20
         while not outcome and time.monotonic() < deadline:
