@@ -1,6 +1,8 @@
 """FHLD model parts: curves, RoIAlign, anchors, cell targets, detector I/O."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -12,6 +14,7 @@ from fhld_ros.model.cell_targets import cell_targets
 from fhld_ros.model.config import FhldConfig
 from fhld_ros.model.curve import AdaptiveAxisCurve, FixedAxisCurve
 from fhld_ros.model.detector import Detections, FhldDetector, with_segment_ends
+from fhld_ros.model.local_branch import LocalPrediction
 from fhld_ros.model.inference import OnnxFeatures, TracedFeatures, serving_features
 from fhld_ros.model.roi_align import roi_align
 from fhld_ros.model.targets import prepare_targets, resample_polyline, to_metres, to_normalised
@@ -237,15 +240,59 @@ def test_detect_returns_ordered_lanes_in_window_metres():
     dets = model.detect(torch.rand(2, 4, 128, 128), score_threshold=0.0, curve_points=7)
     assert len(dets) == 2 and all(isinstance(d, Detections) for d in dets)
     for det in dets:
-        assert 1 <= len(det.lanes) == len(det.confidences) == len(det.curves) <= cfg.num_queries
+        assert 1 <= len(det.lanes) == len(det.confidences) <= cfg.num_queries
+        assert len(det.lanes) <= len(det.curves) <= cfg.num_queries
         assert np.all((det.confidences >= 0) & (det.confidences <= 1))
-        for lane, sampled in zip(det.lanes, det.curves):
+        for lane in det.lanes:
             assert lane.ndim == 2 and lane.shape[1] == 3 and len(lane) >= 2
             assert np.all(np.abs(lane[:, :2]) <= cfg.window_m / 2 + 1e-6)
-            assert sampled.shape == (7, 3)
+        assert all(sampled.shape == (7, 3) for sampled in det.curves)
     assert model.training  # detect leaves the mode as it found it
     none = model.detect(torch.rand(1, 4, 128, 128), score_threshold=1.01)[0]
     assert none.lanes == [] and none.confidences.shape == (0,)
+
+
+class _HeadSeeingLaneAt(torch.nn.Module):
+    """A local head that sees one lane along v = lane_v: it accepts cells within a quarter cell
+    of it and, from anywhere, points each cell's segment centre onto it."""
+
+    def __init__(self, cfg: FhldConfig, lane_v: float) -> None:
+        super().__init__()
+        self.cfg, self.lane_v = cfg, lane_v
+
+    def forward(self, local_map, anchors) -> LocalPrediction:
+        c = anchors.centres
+        near = (c[..., 1] - self.lane_v).abs() < 0.25 * self.cfg.cell_norm
+        heading = torch.zeros_like(c)
+        heading[..., 0] = 1.0
+        return LocalPrediction(logits=torch.where(near, 5.0, -5.0),
+                               centre=torch.stack([c[..., 0], torch.full_like(c[..., 0],
+                                                                         self.lane_v)], -1),
+                               length=torch.full_like(c[..., 0], self.cfg.cell_norm),
+                               heading=heading, z=anchors.z)
+
+
+def test_detect_recentres_cells_on_the_segments_they_find():
+    cfg = small_config()
+    model = FhldDetector(cfg).eval()
+    model.local_head = _HeadSeeingLaneAt(cfg, lane_v=0.5)
+    off = 0.5 + 0.6 * cfg.cell_norm  # the global curve runs 0.6 cells beside the lane
+    curves = torch.zeros(cfg.dec_layers, 1, cfg.num_queries, 12)
+    curves[:, 0, 0, :6] = torch.tensor([0.1, off, 0.0, 0.9, off, 0.0])
+    logits = torch.tensor([10.0, 0.0]).repeat(cfg.dec_layers, 1, cfg.num_queries, 1)
+    logits[:, 0, 0] = torch.tensor([0.0, 10.0])  # query 0 is the only lane
+    features = (logits, curves, torch.zeros(1, cfg.local_channels, 16, 16))
+    raster = torch.zeros(1, 4, cfg.size_px, cfg.size_px)
+
+    model.cfg = replace(cfg, local_refine_steps=0)  # cells stay on the curve: all rejected
+    found = model.detect(raster, features=features, refine_heights=False, curve_points=5)[0]
+    assert found.lanes == [] and len(found.curves) == 1  # the global curve alone remains
+    model.cfg = replace(cfg, local_refine_steps=1)
+    lanes = model.detect(raster, features=features, refine_heights=False)[0].lanes
+    assert len(lanes) == 1 and len(lanes[0]) >= 4
+    np.testing.assert_allclose(lanes[0][:, 1], 0.0, atol=1e-5)  # v = 0.5 is y = 0 m
+    with pytest.raises(ValueError, match='local_refine_steps'):
+        FhldDetector(small_config(local_refine_steps=-1))
 
 
 @pytest.mark.parametrize('sign', [1.0, -1.0])

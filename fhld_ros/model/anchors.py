@@ -3,13 +3,14 @@
 Training: B cells per matched lane, evenly spaced in t along the matched *predicted* curve (or
 the GT lane, cfg.anchors_on_gt), with Gaussian position noise (cfg.anchor_noise), plus negative
 cells sampled at 1-2.5 r around random positives. Inference: cells along each kept curve with a
-density proportional to 1 + curvature / curvature_ref, so bends get more output points.
+density proportional to 1 + curvature / curvature_ref, so bends get more output points; the
+detector then moves each cell to the segment it predicted (AnchorGrid.moved_to) and asks again.
 Anchor centres are detached: the local branch never moves the global curves.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -33,6 +34,10 @@ class AnchorGrid:
     @property
     def shape(self) -> tuple[int, int]:
         return self.centres.shape[0], self.centres.shape[1]
+
+    def moved_to(self, centres: Tensor) -> AnchorGrid:
+        """The same cells re-centred at centres (L, K, 2), kept inside the window."""
+        return replace(self, centres=centres.clamp(0, 1))
 
 
 def lerp_polyline(points: Tensor, frac: Tensor) -> Tensor:

@@ -4,8 +4,10 @@ Training: ``outputs = model(raster, targets=targets)``; the last decoder layer i
 the GT inside forward so the anchor cells can follow the matched predicted curves; the matches,
 prepared GT, anchors and local predictions are returned for the criterion (losses.py).
 Inference: ``model.detect(raster, score_threshold)`` -> one Detections per batch item, lanes as
-ordered (K, 3) point sequences in window-frame metres. No NMS: one query is one lane. Lane
-heights then follow the surface measured in the raster (heights.py).
+ordered (K, 3) point sequences in window-frame metres. No NMS: one query is one lane. Each
+cell is re-centred on the segment it found and classified again (cfg.local_refine_steps), so a
+curve that is off by more than the training noise still yields its lane. Lane heights then
+follow the surface measured in the raster (heights.py).
 """
 from __future__ import annotations
 
@@ -30,7 +32,9 @@ from fhld_ros.model.targets import LaneTargets, prepare_targets, to_metres
 class Detections:
     lanes: list[np.ndarray] = field(default_factory=list)  # (K, 3) window-frame m, ordered
     confidences: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    curves: list[np.ndarray] = field(default_factory=list)  # the global curves, sampled
+    # Every global curve above the score threshold, sampled; a curve whose cells the local
+    # branch all rejects has no lane, so curves may outnumber lanes.
+    curves: list[np.ndarray] = field(default_factory=list)
 
 
 class FhldDetector(nn.Module):
@@ -110,6 +114,8 @@ class FhldDetector(nn.Module):
         params = curves[-1][batch, query]
         anchors = inference_anchors(params, batch, query, cfg, self.curve_model)
         local = self.local_head(local_map, anchors)
+        for _ in range(cfg.local_refine_steps):  # cells follow the segments they found
+            local = self.local_head(local_map, anchors.moved_to(local.centre))
         keep = anchors.valid & (local.logits.sigmoid() >= cfg.local_score_threshold)
         keep &= ((local.centre >= 0) & (local.centre <= 1)).all(-1)
         points = torch.cat([local.centre, local.z.unsqueeze(-1)], -1).cpu().numpy()
@@ -121,15 +127,15 @@ class FhldDetector(nn.Module):
             sampled = self.curve_model.evaluate(params, t.expand(len(params), -1)).cpu().numpy()
         results = [Detections() for _ in range(raster.shape[0])]
         for i, item in enumerate(batch_np):  # one iteration per detected lane
+            det = results[item]
+            if curve_points:  # every curve: the global branch's own result
+                det.curves.append(to_metres(sampled[i], cfg.window_m))
             lane = points[i][keep_np[i]]
             if len(lane) < 2:
                 continue
             lane = with_segment_ends(lane, reach[i][keep_np[i]])
-            det = results[item]
             det.lanes.append(to_metres(lane, cfg.window_m))
             det.confidences = np.append(det.confidences, conf_np[i])
-            if curve_points:
-                det.curves.append(to_metres(sampled[i], cfg.window_m))
         if refine_heights:
             for item, det in enumerate(results):
                 det.lanes = refine_lane_heights(det.lanes, raster[item].cpu().numpy(),
