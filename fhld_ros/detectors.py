@@ -49,6 +49,7 @@ def fhld_detector(params: DetectorParams) -> Detector:
         raster = torch.from_numpy(window.raster).unsqueeze(0).to(params.device)
         found = model.detect(raster, score_threshold=params.score_threshold,
                              refine_heights=params.refine_heights,
+                             refine_steps=params.local_refine_steps,
                              features=features(raster))[0]
         return found.lanes, found.confidences
     return detect

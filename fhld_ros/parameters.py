@@ -22,6 +22,7 @@ class DetectorParams:
     model_runtime: str = 'auto'
     score_threshold: float = 0.5
     refine_heights: bool = True
+    local_refine_steps: int = 2
     size_px: int = 640
     resolution_m: float = 0.04
     accumulate_sec: float = 1.0
@@ -45,6 +46,9 @@ class DetectorParams:
             problems.append("input_reliability must be 'auto', 'reliable' or 'best_effort'")
         if not isinstance(self.refine_heights, bool):
             problems.append('refine_heights must be true or false')
+        steps = self.local_refine_steps
+        if isinstance(steps, bool) or not (isinstance(steps, int) and steps >= 0):
+            problems.append('local_refine_steps must be an integer >= 0')
         if len(self.lidar_to_base) != 6:
             problems.append('lidar_to_base must be [x, y, z, roll, pitch, yaw]')
         if not (self.rate_hz > 0 and self.accumulate_sec >= 0 and self.max_sweeps >= 1
@@ -69,6 +73,8 @@ DESCRIPTIONS: dict[str, str] = {
     'score_threshold': 'minimum lane confidence to publish',
     'refine_heights': 'FHLD lane heights follow the measured road surface (robust fit of the '
                       "raster's minimum heights); false keeps the model's own heights",
+    'local_refine_steps': 'FHLD anchor cells re-centred on the segment they found and '
+                          'classified again this many times (0 = on the global curves only)',
     'size_px': 'BEV window size in cells (square)',
     'resolution_m': 'BEV cell size in metres',
     'accumulate_sec': 'sweeps younger than this (relative to the newest) are accumulated',

@@ -1,8 +1,6 @@
 """FHLD model parts: curves, RoIAlign, anchors, cell targets, detector I/O."""
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
 import torch
@@ -284,10 +282,11 @@ def test_detect_recentres_cells_on_the_segments_they_find():
     features = (logits, curves, torch.zeros(1, cfg.local_channels, 16, 16))
     raster = torch.zeros(1, 4, cfg.size_px, cfg.size_px)
 
-    model.cfg = replace(cfg, local_refine_steps=0)  # cells stay on the curve: all rejected
-    found = model.detect(raster, features=features, refine_heights=False, curve_points=5)[0]
-    assert found.lanes == [] and len(found.curves) == 1  # the global curve alone remains
-    model.cfg = replace(cfg, local_refine_steps=1)
+    # cells left on the curve are all rejected; the global curve alone remains
+    found = model.detect(raster, features=features, refine_heights=False, curve_points=5,
+                         refine_steps=0)[0]
+    assert found.lanes == [] and len(found.curves) == 1
+    assert cfg.local_refine_steps == 2  # the default: re-centred cells find the lane
     lanes = model.detect(raster, features=features, refine_heights=False)[0].lanes
     assert len(lanes) == 1 and len(lanes[0]) >= 4
     np.testing.assert_allclose(lanes[0][:, 1], 0.0, atol=1e-5)  # v = 0.5 is y = 0 m

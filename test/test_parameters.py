@@ -27,3 +27,5 @@ def test_bad_values_are_named(tmp_path):
         load_params_yaml(bad)
     with pytest.raises(ValueError, match="detector must be 'fhld' or 'classical'"):
         DetectorParams(detector='deep')
+    with pytest.raises(ValueError, match='local_refine_steps must be an integer >= 0'):
+        DetectorParams(local_refine_steps=-1)

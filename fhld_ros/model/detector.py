@@ -93,12 +93,14 @@ class FhldDetector(nn.Module):
     @torch.inference_mode()
     def detect(self, raster: Tensor, score_threshold: float = 0.5,
                curve_points: int = 0, refine_heights: bool = True,
-               features: tuple[Tensor, Tensor, Tensor] | None = None) -> list[Detections]:
+               features: tuple[Tensor, Tensor, Tensor] | None = None,
+               refine_steps: int | None = None) -> list[Detections]:
         """Lanes per batch item. curve_points > 0 also samples each global curve.
 
         refine_heights: lane heights follow the measured surface in the raster (heights.py);
         False keeps the local branch's own heights. features: this raster's features() computed
-        elsewhere (serving_features in inference.py).
+        elsewhere (serving_features in inference.py). refine_steps: cell re-centring passes,
+        default cfg.local_refine_steps.
         """
         if features is None:
             was_training = self.training
@@ -114,7 +116,8 @@ class FhldDetector(nn.Module):
         params = curves[-1][batch, query]
         anchors = inference_anchors(params, batch, query, cfg, self.curve_model)
         local = self.local_head(local_map, anchors)
-        for _ in range(cfg.local_refine_steps):  # cells follow the segments they found
+        steps = cfg.local_refine_steps if refine_steps is None else refine_steps
+        for _ in range(steps):  # cells follow the segments they found
             local = self.local_head(local_map, anchors.moved_to(local.centre))
         keep = anchors.valid & (local.logits.sigmoid() >= cfg.local_score_threshold)
         keep &= ((local.centre >= 0) & (local.centre <= 1)).all(-1)
