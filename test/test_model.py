@@ -12,8 +12,8 @@ from fhld_ros.model.cell_targets import cell_targets
 from fhld_ros.model.config import FhldConfig
 from fhld_ros.model.curve import AdaptiveAxisCurve, FixedAxisCurve
 from fhld_ros.model.detector import Detections, FhldDetector, with_segment_ends
-from fhld_ros.model.local_branch import LocalPrediction
 from fhld_ros.model.inference import OnnxFeatures, TracedFeatures, serving_features
+from fhld_ros.model.local_branch import LocalPrediction
 from fhld_ros.model.roi_align import roi_align
 from fhld_ros.model.targets import prepare_targets, resample_polyline, to_metres, to_normalised
 from fhld_ros.parameters import DetectorParams
