@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import Any
 
 from fhld_ros.errors import CliError
+from fhld_ros.model.config import FhldConfig
 
 
 @dataclass(frozen=True)
@@ -22,7 +23,7 @@ class DetectorParams:
     model_runtime: str = 'auto'
     score_threshold: float = 0.5
     refine_heights: bool = True
-    local_refine_steps: int = 2
+    local_refine_steps: int = FhldConfig.local_refine_steps
     size_px: int = 640
     resolution_m: float = 0.04
     accumulate_sec: float = 1.0
