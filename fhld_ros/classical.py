@@ -271,22 +271,3 @@ class ClassicalLaneDetector:
         """Lanes of a bev.BevWindow in the *output* frame (as /lanes publishes them)."""
         lanes, confs = self.detect(window.points_window, window.intensity)
         return [window.to_output(lane) for lane in lanes], confs
-
-
-def bench_classical() -> dict[str, float]:
-    """`fhld bench classical`: detect on 10 accumulated synthetic 64x1024 sweeps."""
-    from fhld_ros.bench import time_median
-    from fhld_ros.bev import RollingBevGrid, synthetic_sweep
-
-    rng = np.random.default_rng(0)
-    grid = RollingBevGrid(accumulate_sec=1.0, max_sweeps=10)
-    for k in range(10):
-        pose = np.eye(4)
-        pose[0, 3] = 1.0 * k  # 10 m/s at 10 Hz
-        grid.insert(k * 100_000_000, *synthetic_sweep(rng), pose)
-    window = grid.window()
-    points, intensity = np.asarray(window.points_window), np.asarray(window.intensity)
-    detector = ClassicalLaneDetector()
-    return {'classical_detect_ms': time_median(lambda: detector.detect(points, intensity),
-                                               repeats=5, warmup=1),
-            'classical_points': float(len(points))}

@@ -1,7 +1,8 @@
 """`fhld` command line: one subcommand per module.
 
-Each module named in COMMANDS provides ``add_arguments(parser)`` and ``run(args) -> int`` and
-keeps heavy imports (torch, rclpy) inside ``run`` so that ``fhld --help`` stays fast.
+Each module named in COMMANDS provides ``add_arguments(parser)`` and ``run(args) -> int``. Only
+the chosen subcommand's module is imported, so ``fhld --help`` needs neither torch nor rclpy and
+a command's module imports what it uses at its top.
 """
 from __future__ import annotations
 
@@ -13,34 +14,41 @@ from fhld_ros.errors import CliError
 
 # subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    'bench': ('fhld_ros.bench', 'time the pipeline stages on this machine (medians)'),
-    'replay': ('fhld_ros.replay', 'run the detector pipeline over a bag on bag time'),
-    'play': ('fhld_ros.play', 'publish a bag over DDS in real time with /clock'),
-    'demo': ('fhld_ros.demo', 'simulate a drive, detect lanes, score them and draw a picture'),
-    'eval': ('fhld_ros.evaluate',
+    'bench': ('fhld_ros.commands.bench', 'time the pipeline stages on this machine (medians)'),
+    'replay': ('fhld_ros.commands.replay', 'run the detector pipeline over a bag on bag time'),
+    'play': ('fhld_ros.ros.play', 'publish a bag over DDS in real time with /clock'),
+    'demo': ('fhld_ros.commands.demo',
+             'simulate a drive, detect lanes, score them and draw a picture'),
+    'eval': ('fhld_ros.evaluation.evaluate',
              'score predicted /lanes against /lanes_gt (FHLD point metric, ONCE-3DLanes metric)'),
-    'simulate': ('fhld_ros.data.simulate', 'write a simulated road scene as a rosbag2 MCAP bag'),
-    'testset': ('fhld_ros.testset', 'score detectors on the fixed held-out simulated test set'),
-    'train': ('fhld_ros.train', 'train the FHLD detector on cached simulator windows'),
+    'simulate': ('fhld_ros.sim.simulate', 'write a simulated road scene as a rosbag2 MCAP bag'),
+    'testset': ('fhld_ros.evaluation.testset',
+                'score detectors on the fixed held-out simulated test set'),
+    'train': ('fhld_ros.training.train', 'train the FHLD detector on cached simulator windows'),
 }
 
 __all__ = ['COMMANDS', 'CliError', 'build_parser', 'main']
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The `fhld` parser; only `command` (when given) gets its arguments and module."""
     parser = argparse.ArgumentParser(
         prog='fhld', description='FHLD lane detection tools (simulate, replay, eval, bench, ...)')
     sub = parser.add_subparsers(dest='command', metavar='COMMAND', required=True)
     for name, (module_name, help_text) in COMMANDS.items():
-        module = importlib.import_module(module_name)
         cmd = sub.add_parser(name, help=help_text, description=help_text)
-        module.add_arguments(cmd)
-        cmd.set_defaults(_module=module)
+        if name == command:
+            module = importlib.import_module(module_name)
+            module.add_arguments(cmd)
+            cmd.set_defaults(_module=module)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    # `fhld` has no options of its own but -h: the first word that is not one names the command
+    chosen = next((word for word in argv if not word.startswith('-')), None)
+    args = build_parser(chosen).parse_args(argv)
     try:
         return int(args._module.run(args) or 0)
     except CliError as exc:

@@ -5,9 +5,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from fhld_ros.bev import BevWindow
 from fhld_ros.errors import CliError
-from fhld_ros.parameters import DetectorParams
+from fhld_ros.rolling_grid import BevWindow
+from fhld_ros.ros.parameters import DetectorParams
 
 Detector = Callable[[BevWindow], tuple[list[np.ndarray], np.ndarray]]
 

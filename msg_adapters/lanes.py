@@ -1,4 +1,4 @@
-"""Lanes <-> visualization_msgs/MarkerArray and nav_msgs/Path (ARCHITECTURE.md §3, fixed).
+"""Lanes <-> visualization_msgs/MarkerArray and nav_msgs/Path (docs/design.md §3, fixed).
 
 A /lanes message is: one DELETEALL marker (ns `lanes`), one LINE_STRIP per lane (ns `lanes`,
 id stable per lane, colour alpha = confidence, text `conf=0.93`), and one LINE_STRIP in ns
@@ -6,9 +6,9 @@ id stable per lane, colour alpha = confidence, text `conf=0.93`), and one LINE_S
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
-from collections.abc import Sequence
 
 import numpy as np
 

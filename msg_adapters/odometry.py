@@ -1,8 +1,8 @@
 """nav_msgs/Odometry and geometry_msgs/Pose <-> 4x4 homogeneous matrices, and interpolation."""
 from __future__ import annotations
 
-from typing import Any
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 

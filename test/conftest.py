@@ -14,7 +14,7 @@ import pytest
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from fhld_ros.ros_env import loopback_dds_env  # noqa: E402
+from fhld_ros.ros.env import loopback_dds_env  # noqa: E402
 
 os.environ.update(loopback_dds_env())
 

@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from fhld_ros import bev
-from fhld_ros.bev import BevSpec, RollingBevGrid, normalize_intensity, rasterize
+from fhld_ros.bev import BevSpec, normalize_intensity, rasterize
+from fhld_ros.commands import bench_stages
+from fhld_ros.rolling_grid import RollingBevGrid
 
 SPEC = BevSpec()
 EMPTY = np.array([0.0, 0.0, 0.0, bev.EMPTY_MIN_HEIGHT], dtype=np.float32)
@@ -322,6 +324,6 @@ def test_heights_survive_large_climbs():
 
 
 def test_bench_reports_timings():
-    result = bev.bench_bev()
+    result = bench_stages.bench_bev()
     assert {'grid_insert_ms', 'raster_ms', 'raster_points'} <= set(result)
     assert all(isinstance(v, float) and v > 0 for v in result.values())

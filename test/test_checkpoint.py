@@ -4,8 +4,13 @@ from __future__ import annotations
 import pytest
 import torch
 
-from fhld_ros.model.checkpoint import (FORMAT, CheckpointError, code_version, load_checkpoint,
-                                       save_checkpoint)
+from fhld_ros.model.checkpoint import (
+    FORMAT,
+    CheckpointError,
+    code_version,
+    load_checkpoint,
+    save_checkpoint,
+)
 from fhld_ros.model.config import FhldConfig
 from fhld_ros.model.detector import FhldDetector
 

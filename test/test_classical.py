@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from fhld_ros.classical import ClassicalConfig, ClassicalLaneDetector, otsu_threshold
-from fhld_ros.metrics import point_counts, resample_polyline
+from fhld_ros.evaluation.metrics import point_counts, resample_polyline
 
 HALF = 12.8
 

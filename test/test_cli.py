@@ -20,6 +20,24 @@ def test_help_lists_every_subcommand():
         assert name in result.stdout
 
 
+def test_help_imports_no_subcommand_module():
+    code = ('import sys; from fhld_ros.cli import main\n'
+            'try:\n    main(["--help"])\nexcept SystemExit:\n    pass\n'
+            'print(sorted(m for m in ("torch", "rclpy", "fhld_ros.sim", "fhld_ros.training") '
+            'if m in sys.modules))')
+    result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip().splitlines()[-1] == '[]'
+
+
+def test_every_subcommand_builds_its_own_parser():
+    for name in COMMANDS:
+        result = _fhld(name, '--help')
+        assert result.returncode == 0, f'{name}: {result.stderr}'
+        assert result.stdout.startswith(f'usage: fhld {name}'), result.stdout
+
+
 def test_bench_adapters_reports_decode_speed_as_json():
     result = _fhld('bench', 'adapters', '--json')
     assert result.returncode == 0, result.stderr

@@ -11,7 +11,7 @@ import pytest
 
 from fhld_ros.bagio import BagWriter
 from fhld_ros.cli import main
-from fhld_ros.evaluate import window_frame
+from fhld_ros.evaluation.evaluate import window_frame
 from msg_adapters.lanes import lanes_to_marker_array
 
 MARKERS = 'visualization_msgs/msg/MarkerArray'

@@ -13,7 +13,7 @@ def test_callbacks_in_other_groups_run_while_one_blocks(ros_env, rclpy_context):
     from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
     from std_msgs.msg import String
 
-    from fhld_ros.executor import HandoffExecutor
+    from fhld_ros.ros.executor import HandoffExecutor
 
     node = rclpy.create_node('handoff_probe', context=rclpy_context)
     received = threading.Event()
@@ -46,7 +46,7 @@ def test_callbacks_in_other_groups_run_while_one_blocks(ros_env, rclpy_context):
 def test_callback_errors_surface_from_spin(ros_env, rclpy_context):
     import rclpy
 
-    from fhld_ros.executor import HandoffExecutor
+    from fhld_ros.ros.executor import HandoffExecutor
 
     node = rclpy.create_node('handoff_errors', context=rclpy_context)
 

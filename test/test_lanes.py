@@ -1,12 +1,17 @@
-"""msg_adapters.lanes: the /lanes MarkerArray and Path contract (ARCHITECTURE.md §3)."""
+"""msg_adapters.lanes: the /lanes MarkerArray and Path contract (docs/design.md §3)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from msg_adapters.family import rclpy_family, rosbags_family
-from msg_adapters.lanes import (DELETEALL, LINE_STRIP, lane_to_path, lanes_to_marker_array,
-                                marker_array_to_lanes)
+from msg_adapters.lanes import (
+    DELETEALL,
+    LINE_STRIP,
+    lane_to_path,
+    lanes_to_marker_array,
+    marker_array_to_lanes,
+)
 
 FAMILIES = [rosbags_family(), rclpy_family()]
 OUTLINE = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0], [-1, -1, 0]], float)
@@ -67,7 +72,7 @@ def test_path_follows_the_lane_with_headings(family):
 def test_bench_reads_the_stamp_of_a_serialised_marker_array():
     from rclpy.serialization import serialize_message
 
-    from fhld_ros.bench_e2e import marker_array_stamp_ns
+    from fhld_ros.commands.bench_e2e import marker_array_stamp_ns
     family = rclpy_family()
     stamp = 1_700_000_123_456_789_012
     msg = lanes_to_marker_array(family, family.header(stamp, 'odom'), _lanes(), [0.9, 0.8],

@@ -6,16 +6,20 @@ import math
 import numpy as np
 import pytest
 import torch
+from model_fixtures import small_config as shared_small_config
 
-from fhld_ros.losses import (FhldCriterion, curve_fit_loss, gaussian_kl, segment_covariance,
-                             symmetric_kl)
-from fhld_ros.matcher import HungarianMatcher, terminal_l1
 from fhld_ros.model.config import FhldConfig
 from fhld_ros.model.curve import AdaptiveAxisCurve, FixedAxisCurve
 from fhld_ros.model.detector import FhldDetector
+from fhld_ros.model.losses import (
+    FhldCriterion,
+    curve_fit_loss,
+    gaussian_kl,
+    segment_covariance,
+    symmetric_kl,
+)
+from fhld_ros.model.matcher import HungarianMatcher, terminal_l1
 from fhld_ros.model.targets import prepare_targets
-from model_fixtures import small_config as shared_small_config
-
 
 pytestmark = pytest.mark.usefixtures('one_torch_thread')
 

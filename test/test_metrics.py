@@ -1,11 +1,11 @@
-"""fhld_ros.metrics on constructed cases: point metric, ONCE paper mode, released-evaluator quirks,
-window clipping."""
+"""fhld_ros.evaluation.metrics on constructed cases: point metric, ONCE paper mode,
+released-evaluator quirks, window clipping."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from fhld_ros import metrics as m
+from fhld_ros.evaluation import metrics as m
 
 HALF = 12.8
 

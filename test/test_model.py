@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from model_fixtures import small_config
 
 from fhld_ros.bev import BevSpec
 from fhld_ros.model.anchors import inference_anchors, training_anchors
@@ -16,8 +17,7 @@ from fhld_ros.model.inference import OnnxFeatures, TracedFeatures, serving_featu
 from fhld_ros.model.local_branch import LocalPrediction
 from fhld_ros.model.roi_align import roi_align
 from fhld_ros.model.targets import prepare_targets, resample_polyline, to_metres, to_normalised
-from fhld_ros.parameters import DetectorParams
-from model_fixtures import small_config
+from fhld_ros.ros.parameters import DetectorParams
 
 CURVES = [AdaptiveAxisCurve(), FixedAxisCurve()]
 

@@ -82,7 +82,7 @@ def _wait(predicate, timeout: float) -> bool:
 @pytest.fixture(scope='module')
 def node_process(ros_env):
     node = subprocess.Popen(
-        [sys.executable, '-m', 'fhld_ros.node', '--ros-args', '-p', f'detector:={DETECTOR}',
+        [sys.executable, '-m', 'fhld_ros.ros.node', '--ros-args', '-p', f'detector:={DETECTOR}',
          '-p', 'use_sim_time:=true'], env=ros_env, stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT, text=True)
     yield node

@@ -7,9 +7,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from msg_adapters.family import rclpy_family, rosbags_family
-from msg_adapters.odometry import (euler_to_matrix, interpolate_pose, make_odometry,
-                                   matrix_to_quaternion, odometry_to_matrix,
-                                   quaternion_to_matrix)
+from msg_adapters.odometry import (
+    euler_to_matrix,
+    interpolate_pose,
+    make_odometry,
+    matrix_to_quaternion,
+    odometry_to_matrix,
+    quaternion_to_matrix,
+)
 
 angles = st.floats(-np.pi, np.pi)
 

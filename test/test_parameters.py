@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 
 from fhld_ros.errors import CliError
-from fhld_ros.parameters import DESCRIPTIONS, DetectorParams, load_params_yaml
+from fhld_ros.ros.parameters import DESCRIPTIONS, DetectorParams, load_params_yaml
 
 YAML = Path(__file__).resolve().parents[1] / 'config' / 'lane_detector.yaml'
 

@@ -9,8 +9,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from msg_adapters.family import rclpy_family, rosbags_family
-from msg_adapters.pointcloud2 import (DATATYPES, FLOAT32, FLOAT64, UINT16, create_cloud,
-                                      read_points, read_xyzi)
+from msg_adapters.pointcloud2 import (
+    DATATYPES,
+    FLOAT32,
+    FLOAT64,
+    UINT16,
+    create_cloud,
+    read_points,
+    read_xyzi,
+)
 
 FAMILIES = [rosbags_family(), rclpy_family()]
 

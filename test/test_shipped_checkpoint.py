@@ -5,11 +5,12 @@ import numpy as np
 import pytest
 import torch
 
-from fhld_ros import metrics
-from fhld_ros.data.cache import TEST_SEED_BASE, CacheSettings, scenario_for_seed
-from fhld_ros.data.simulator import Simulator
+from fhld_ros.evaluation import metrics
 from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint
 from fhld_ros.model.config import FhldConfig
+from fhld_ros.sim.simulator import Simulator
+from fhld_ros.training.cache import TEST_SEED_BASE, CacheSettings, scenario_for_seed
+from fhld_ros.training.samples import training_samples
 
 # Held-out seeds (never trained on); thresholds sit a margin below what the shipped weights
 # score on these windows (README: accuracy table) so a regression fails the test.
@@ -24,7 +25,7 @@ def windows():
     samples = []
     for seed in SEEDS:
         sim = Simulator(seed, sweeps=settings.sweeps_per_seed, **scenario_for_seed(seed, settings))
-        samples.extend(sim.training_samples(1))
+        samples.extend(training_samples(sim, 1))
     return samples
 
 

@@ -10,7 +10,7 @@ import pytest
 
 from fhld_ros.bagio import bag_topics, read_messages
 from fhld_ros.cli import main
-from fhld_ros.data.simulator import Simulator
+from fhld_ros.sim.simulator import Simulator
 from msg_adapters.lanes import marker_array_to_lanes
 from msg_adapters.odometry import odometry_to_matrix
 from msg_adapters.pointcloud2 import read_points, read_xyzi

@@ -7,9 +7,10 @@ import pytest
 from scipy.spatial import cKDTree
 
 from fhld_ros.bev import BevSpec, normalize_intensity
-from fhld_ros.data.layout import MAX_LINES_PER_WINDOW, TOPOLOGIES, max_lines_per_window
-from fhld_ros.data.scene import GROUND_MATERIALS, PAINT
-from fhld_ros.data.simulator import Simulator
+from fhld_ros.sim.layout import MAX_LINES_PER_WINDOW, TOPOLOGIES, max_lines_per_window
+from fhld_ros.sim.scene import GROUND_MATERIALS, PAINT
+from fhld_ros.sim.simulator import Simulator
+from fhld_ros.training.samples import training_samples
 
 
 def world_points(sweep) -> tuple[np.ndarray, np.ndarray]:
@@ -157,7 +158,7 @@ def test_ego_motion_and_odometry_drift() -> None:
 def test_training_samples_follow_the_node_input_path() -> None:
     spec = BevSpec()
     sim = Simulator(3, sweeps=10, sensor='os1-64', columns=512, noise=False)
-    samples = list(sim.training_samples(2))
+    samples = list(training_samples(sim, 2))
     assert len(samples) == 1  # 10 sweeps make one 1 s window
     sample = samples[0]
     assert sample.raster.shape == (4, spec.size_px, spec.size_px)
@@ -190,7 +191,7 @@ def test_bad_options_raise_clear_errors() -> None:
 
 
 def test_clip_to_square_cuts_exactly_and_splits_on_reentry() -> None:
-    from fhld_ros.data.samples import clip_to_square
+    from fhld_ros.sim.gt_lines import clip_to_square
     # a zig-zag that leaves through y = +5 and comes back in
     line = np.array([[-8.0, 0.0, 0.0], [0.0, 8.0, 0.0], [8.0, 0.0, 1.0], [20.0, 0.0, 1.0]])
     pieces, src = clip_to_square([line, line[:1]], 5.0)

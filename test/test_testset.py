@@ -5,7 +5,7 @@ import json
 import subprocess
 import sys
 
-from fhld_ros.data.cache import TEST_SEED_BASE, scenario_for_seed
+from fhld_ros.training.cache import TEST_SEED_BASE, scenario_for_seed
 
 
 def test_testset_scores_every_detector_overall_and_per_sensor():

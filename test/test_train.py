@@ -14,11 +14,27 @@ import torch
 
 from fhld_ros.bev import EMPTY_MIN_HEIGHT, BevSpec
 from fhld_ros.cli import main as fhld
-from fhld_ros.data.cache import (ALL_SENSORS, ALL_TOPOLOGIES, CacheSettings, build_cache,
-                                 read_meta, scenario_for_seed, shard_path)
-from fhld_ros.data.dataset import (CacheDataset, Similarity, augment, centre_crop, collate,
-                                   warp_lanes, warp_raster, warp_rasters)
-from fhld_ros.data.simulator import Simulator
+from fhld_ros.sim.simulator import Simulator
+from fhld_ros.training.cache import (
+    ALL_SENSORS,
+    ALL_TOPOLOGIES,
+    CacheSettings,
+    build_cache,
+    read_meta,
+    scenario_for_seed,
+    shard_path,
+)
+from fhld_ros.training.dataset import (
+    CacheDataset,
+    Similarity,
+    augment,
+    centre_crop,
+    collate,
+    warp_lanes,
+    warp_raster,
+    warp_rasters,
+)
+from fhld_ros.training.samples import training_samples
 
 REPO = Path(__file__).resolve().parent.parent
 RES = 0.2  # tiny rasters: 128 px (160 px cached for training) at 20 cm
@@ -74,7 +90,7 @@ def test_cache_round_trip_matches_the_simulator(caches):
     data = CacheDataset(caches / 'train')
     assert len(data) == 4 and data.size_px == 160 and data.resolution_m == RES
     sim = Simulator(1, sweeps=TINY.sweeps_per_seed, **meta['scenario'])
-    samples = list(sim.training_samples(2, sweeps_per_sample=2, stride=2,
+    samples = list(training_samples(sim, 2, sweeps_per_sample=2, stride=2,
                                         spec=BevSpec(160, RES)))
     for k, sample in enumerate(samples):
         item = data[2 + k]
@@ -150,7 +166,7 @@ def test_identity_flip_and_crop_are_exact():
 def test_augmented_lanes_land_on_the_painted_pixels(seed):
     raster, lanes = painted(160, RES)
     rng = np.random.default_rng(seed)
-    from fhld_ros.data.dataset import AugmentParams
+    from fhld_ros.training.dataset import AugmentParams
     params = AugmentParams(shift_m=2.0, rotate_deg=25.0, flip_prob=0.5, scale_min=0.8,
                            scale_max=1.2)
     out, out_lanes = augment(raster, lanes, rng, params, out_size=128, resolution_m=RES)
@@ -181,7 +197,7 @@ def test_augmented_lanes_land_on_the_painted_pixels(seed):
 
 
 def test_dataset_augmentation_is_keyed_by_seed_epoch_index(caches):
-    from fhld_ros.data.dataset import AugmentParams
+    from fhld_ros.training.dataset import AugmentParams
     data = CacheDataset(caches / 'train', out_size=128, augment=AugmentParams(), seed=1)
     items = [data[1], data[2]]  # seed 0 window 1, seed 1 window 0
     assert items[0]['raster'].shape == (4, 128, 128)

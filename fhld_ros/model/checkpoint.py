@@ -117,3 +117,12 @@ def load_checkpoint(path: str | os.PathLike, expect: FhldConfig | None = None,
     model.eval()
     return LoadedCheckpoint(model, config, str(payload.get('code_version', '')),
                             str(payload.get('train_command', '')), dict(payload.get('meta', {})))
+
+
+def build_default_detector() -> FhldDetector:
+    """The shipped weights when present, else a randomly initialised default model."""
+    if DEFAULT_CHECKPOINT.exists():
+        return load_checkpoint(DEFAULT_CHECKPOINT).model
+    with torch.random.fork_rng():  # reproducible weights without touching the caller's RNG
+        torch.manual_seed(0)
+        return FhldDetector(FhldConfig())

@@ -7,8 +7,10 @@ Pixel quantities (cell size r, anchor noise) are in raster pixels of the configu
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 from typing import Any
+
+from fhld_ros.dataclass_dict import from_dict, to_plain
 
 # Fields added after checkpoints existed, with the value those checkpoints were built with
 # (inference-only fields such as local_refine_steps take the current default instead).
@@ -97,16 +99,11 @@ class FhldConfig:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain types only (lists, not tuples), so torch.load(weights_only=True) accepts it."""
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+        return to_plain(self)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> FhldConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ValueError(f'unknown config fields: {", ".join(unknown)}')
-        data = {**_LEGACY_DEFAULTS, **data}
-        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
+        return from_dict(cls, {**_LEGACY_DEFAULTS, **data}, where='the model config')
 
     def validate(self) -> None:
         if self.size_px % 32:

@@ -18,13 +18,13 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from fhld_ros.matcher import HungarianMatcher
 from fhld_ros.model.anchors import inference_anchors, training_anchors
 from fhld_ros.model.backbone import SlimResNet
 from fhld_ros.model.config import FhldConfig
 from fhld_ros.model.global_branch import GlobalBranch
 from fhld_ros.model.heights import refine_lane_heights
 from fhld_ros.model.local_branch import LocalFeatures, LocalHead
+from fhld_ros.model.matcher import HungarianMatcher
 from fhld_ros.model.targets import LaneTargets, prepare_targets, to_metres
 
 
@@ -161,44 +161,3 @@ def with_segment_ends(centres: np.ndarray, reach: np.ndarray) -> np.ndarray:
         end[:2] = np.clip(end[:2] + step, 0.0, 1.0)
         ends.append(end)
     return np.concatenate([ends[0][None], centres, ends[1][None]])
-
-
-def build_default_detector() -> FhldDetector:
-    """The shipped weights when present, else a randomly initialised default model."""
-    from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint
-
-    if DEFAULT_CHECKPOINT.exists():
-        return load_checkpoint(DEFAULT_CHECKPOINT).model
-    with torch.random.fork_rng():  # reproducible weights without touching the caller's RNG
-        torch.manual_seed(0)
-        return FhldDetector(FhldConfig())
-
-
-def bench_model() -> dict[str, float]:
-    """`fhld bench model`: forward + detect post-processing, 640 x 640, batch 1, on the CPU.
-
-    model_ms is the path the node and `fhld replay` serve with (serving_features in
-    inference.py: ONNX Runtime when installed, one thread per core as the node's default);
-    model_torchscript_ms and model_eager_ms the alternatives, on the caller's torch threads.
-    """
-    import functools
-
-    from fhld_ros.bench import time_median
-    from fhld_ros.model.inference import TracedFeatures, serving_features
-
-    model = build_default_detector().eval()
-    cfg = model.cfg
-    gen = torch.Generator().manual_seed(0)
-    raster = torch.rand(1, cfg.in_channels, cfg.size_px, cfg.size_px, generator=gen)
-    raster[:, :, ::3] = 0  # sparse-ish, like a real BEV raster
-    with torch.inference_mode():
-        prob = model(raster)['logits'].softmax(-1)[0, :, 1]
-    # Post-processing cost grows with the lanes found: time it with 8, the most a window holds.
-    threshold = float(prob.topk(min(8, len(prob))).values[-1])
-    runners = {'model_ms': serving_features(model), 'model_torchscript_ms': TracedFeatures(model),
-               'model_eager_ms': None}  # None: detect() runs the plain module
-
-    def detect_with(run) -> None:
-        model.detect(raster, threshold, features=None if run is None else run(raster))
-    return {name: time_median(functools.partial(detect_with, run), repeats=20, warmup=3)
-            for name, run in runners.items()}

@@ -1,0 +1,179 @@
+"""`fhld testset`: every detector on the same held-out simulated windows, one table.
+
+The test set is fixed: seeds TEST_SEED_BASE .. +55 (unseen by training, which uses seeds from
+0), 4 windows each = 224 windows of 25.6 m, and with the cache's scenario rule these 56 seeds
+cover every sensor preset x topology pair. Each window goes through the node's own path
+(PointCloud2 -> read_xyzi -> RollingBevGrid); the detectors see the identical BevWindow:
+
+* `classical`   rule-based baseline on the window's accumulated points
+* `fhld`        the FHLD model's final output (local branch points, heights refined from the
+                measured surface: model/heights.py)
+* `fhld-model-z` the same lanes with the local branch's own heights (no refinement)
+* `fhld-global` the same model's global curves alone (the paper's "without local branch" row)
+
+Scores: the FHLD point metric and the ONCE-3DLanes lane metric, counts summed over windows;
+the point metric's F1 also per sensor preset and per topology setting.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
+from pathlib import Path
+
+import numpy as np
+
+from fhld_ros.errors import CliError
+
+DETECTORS = ('classical', 'fhld', 'fhld-model-z', 'fhld-global')
+SEEDS = 56
+WINDOWS_PER_SEED = 4
+CURVE_POINTS = 200
+
+_worker: dict = {}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument('--detectors', nargs='+', choices=DETECTORS, default=list(DETECTORS))
+    parser.add_argument('--seeds', type=int, default=SEEDS, help='test seeds (default 56)')
+    parser.add_argument('--windows-per-seed', type=int, default=WINDOWS_PER_SEED)
+    parser.add_argument('--checkpoint', type=Path, help='FHLD weights (default: shipped)')
+    parser.add_argument('--score-threshold', type=float, default=0.5)
+    parser.add_argument('--workers', type=int, default=2, help='parallel processes')
+    parser.add_argument('--json', action='store_true', help='print one JSON object last')
+
+
+def _init(detectors: list[str], checkpoint: str | None, threshold: float) -> None:
+    import torch
+    torch.set_num_threads(1)
+    _worker.update(detectors=detectors, threshold=threshold)
+    if 'classical' in detectors:
+        from fhld_ros.classical import ClassicalLaneDetector
+        _worker['classical'] = ClassicalLaneDetector()
+    if {'fhld', 'fhld-model-z', 'fhld-global'} & set(detectors):
+        from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint
+        _worker['model'] = load_checkpoint(checkpoint or DEFAULT_CHECKPOINT).model.eval()
+
+
+def _detect(window) -> dict[str, list[np.ndarray]]:
+    import torch
+
+    from fhld_ros.model.heights import refine_lane_heights
+    found: dict[str, list[np.ndarray]] = {}
+    if 'classical' in _worker:
+        found['classical'] = _worker['classical'].detect(window.points_window,
+                                                         window.intensity)[0]
+    if 'model' in _worker:
+        raster = torch.from_numpy(window.raster).unsqueeze(0)
+        det = _worker['model'].detect(raster, score_threshold=_worker['threshold'],
+                                      curve_points=CURVE_POINTS, refine_heights=False)[0]
+        found['fhld-model-z'], found['fhld-global'] = det.lanes, det.curves
+        found['fhld'] = refine_lane_heights(det.lanes, window.raster, window.spec.resolution_m)
+    return {name: found[name] for name in _worker['detectors']}
+
+
+def evaluate_seed(seed: int, windows: int) -> dict:
+    """Counts per detector for one test seed (runs in a worker process)."""
+    from fhld_ros.evaluation import metrics
+    from fhld_ros.sim.simulator import Simulator
+    from fhld_ros.training.cache import CacheSettings, scenario_for_seed
+    from fhld_ros.training.samples import training_samples
+
+    settings = CacheSettings(windows_per_seed=windows)
+    scenario = scenario_for_seed(seed, settings)
+    sim = Simulator(seed, sweeps=settings.sweeps_per_seed, **scenario)
+    point = {name: metrics.PointCounts() for name in _worker['detectors']}
+    once = {name: metrics.LaneCounts() for name in _worker['detectors']}
+    count = 0
+    for sample in training_samples(sim, windows, keep_window=True):
+        half = sample.window.spec.length_m / 2
+        for name, lanes in _detect(sample.window).items():
+            lanes = metrics.clip_lanes_to_square(lanes, half)
+            point[name] += metrics.point_counts(lanes, sample.lanes)
+            once[name] += metrics.once_counts(lanes, sample.lanes, half)
+        count += 1
+    return {'seed': seed, 'windows': count, 'scenario': scenario, 'point': point,
+            'once': once}
+
+
+def run(args: argparse.Namespace) -> int:
+    from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT
+    from fhld_ros.training.cache import TEST_SEED_BASE
+
+    if args.seeds < 1 or args.windows_per_seed < 1 or args.workers < 1:
+        raise CliError('--seeds, --windows-per-seed and --workers must be >= 1')
+    wants_model = {'fhld', 'fhld-model-z', 'fhld-global'} & set(args.detectors)
+    checkpoint = args.checkpoint or DEFAULT_CHECKPOINT
+    if wants_model and not Path(checkpoint).is_file():
+        raise CliError(f'checkpoint not found: {checkpoint}')
+    seeds = list(range(TEST_SEED_BASE, TEST_SEED_BASE + args.seeds))
+    init = (args.detectors, str(checkpoint) if wants_model else None, args.score_threshold)
+    from tqdm import tqdm
+    start = time.monotonic()
+    with ProcessPoolExecutor(args.workers, mp_context=get_context('spawn'), initializer=_init,
+                             initargs=init) as pool:
+        futures = [pool.submit(evaluate_seed, seed, args.windows_per_seed) for seed in seeds]
+        results = [f.result() for f in tqdm(futures, desc='test set', unit='seed',
+                                            file=sys.stderr)]
+    report = summarise(results, args.detectors)
+    report['seconds'] = round(time.monotonic() - start, 1)
+    print_table(report)
+    if args.json:
+        print(json.dumps(report))
+    return 0
+
+
+def summarise(results: list[dict], detectors: list[str]) -> dict:
+    from fhld_ros.evaluation import metrics
+    report: dict = {'windows': sum(r['windows'] for r in results), 'seeds': len(results),
+                    'sensors': sorted({r['scenario']['sensor'] for r in results}),
+                    'topologies': sorted({str(r['scenario']['topology']) for r in results}),
+                    'detectors': {}}
+    for name in detectors:
+        point = sum((r['point'][name] for r in results), metrics.PointCounts())
+        once = sum((r['once'][name] for r in results), metrics.LaneCounts())
+        report['detectors'][name] = {
+            'point': {k: round(v, 2) for k, v in point.scores().items()},
+            'once': {k: round(v, 4 if k == 'CD' else 2) for k, v in once.scores().items()}}
+    for key in ('sensor', 'topology'):
+        report[f'by_{key}'] = _point_f1_by(results, detectors, key)
+    return report
+
+
+def _point_f1_by(results: list[dict], detectors: list[str], key: str) -> dict:
+    """{scenario value: {'windows': n, detector: {'F1@10': .., 'F1@30': ..}}}."""
+    from fhld_ros.evaluation import metrics
+    groups: dict[str, list[dict]] = {}
+    for r in results:
+        groups.setdefault(str(r['scenario'][key]), []).append(r)
+    table = {}
+    for value, group in sorted(groups.items()):
+        row: dict = {'windows': sum(r['windows'] for r in group)}
+        for name in detectors:
+            scores = sum((r['point'][name] for r in group), metrics.PointCounts()).scores()
+            row[name] = {k: round(v, 2) for k, v in scores.items() if k.startswith('F1')}
+        table[value] = row
+    return table
+
+
+def print_table(report: dict) -> None:
+    print(f'held-out test set: {report["windows"]} windows from {report["seeds"]} seeds, '
+          f'{len(report["sensors"])} sensors, {len(report["topologies"])} topology settings')
+    header = f'{"detector":<13} {"P@10":>6} {"R@10":>6} {"F1@10":>6} {"P@30":>6} {"R@30":>6} ' \
+             f'{"F1@30":>6} | {"ONCE P":>6} {"R":>6} {"F1":>6} {"CD m":>6}'
+    print(header)
+    for name, scores in report['detectors'].items():
+        p, o = scores['point'], scores['once']
+        print(f'{name:<13} {p["P@10"]:6.2f} {p["R@10"]:6.2f} {p["F1@10"]:6.2f} '
+              f'{p["P@30"]:6.2f} {p["R@30"]:6.2f} {p["F1@30"]:6.2f} | {o["P"]:6.2f} '
+              f'{o["R"]:6.2f} {o["F1"]:6.2f} {o["CD"]:6.3f}')
+    names = list(report['detectors'])
+    for key in ('sensor', 'topology'):
+        print(f'\npoint F1@10 / F1@30 by {key}')
+        print(f'{key:<14} {"windows":>7} ' + ' '.join(f'{n:>15}' for n in names))
+        for value, row in report[f'by_{key}'].items():
+            cells = ' '.join(f'{row[n]["F1@10"]:7.2f} {row[n]["F1@30"]:7.2f}' for n in names)
+            print(f'{value:<14} {row["windows"]:>7} {cells}')

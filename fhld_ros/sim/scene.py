@@ -1,0 +1,257 @@
+"""Ground surface: road plane, curbs, sidewalks, verges and terrain as an analytic height
+h(s, d), its materials, and a tiled heightfield cache for fast ray marching.
+
+The analytic height is the truth (GT z and the final ray intersections use it). The cache
+holds h, s and d sampled on a world-aligned grid so the ray marcher can bracket hits with
+plain array gathers and refine them with exact heights at interpolated (s, d).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fhld_ros.sim.layout import Layout
+from fhld_ros.sim.road import DS, ReferenceLine
+
+# ground materials (obstacle materials continue in obstacles.py)
+ASPHALT, PAINT, CONCRETE, GRAVEL, GRASS = 1, 2, 3, 4, 5
+GROUND_MATERIALS = (ASPHALT, PAINT, CONCRETE, GRAVEL, GRASS)
+
+
+@dataclass(frozen=True)
+class Roadside:
+    """Cross-section beyond one paved edge."""
+
+    curb_h: float  # curb height (0: no curb)
+    walk_w: float  # sidewalk width (0: none)
+    verge_w: float  # gravel strip width before the terrain starts (no sidewalk)
+    slope: float  # terrain slope beyond (+ rising, - falling)
+    ditch: float  # ditch depth just beyond the verge
+
+
+def _roadside(rng: np.random.Generator, road_class: str) -> Roadside:
+    if road_class == 'urban':
+        return Roadside(rng.uniform(0.10, 0.18), rng.uniform(1.5, 4.0), 0.0,
+                        rng.uniform(-0.02, 0.05), 0.0)
+    return Roadside(0.0, 0.0, rng.uniform(0.3, 1.2), rng.uniform(-0.25, 0.3),
+                    rng.uniform(0.0, 0.6) if rng.random() < 0.6 else 0.0)
+
+
+class Surface:
+    """Analytic ground height and material in road coordinates."""
+
+    def __init__(self, ref: ReferenceLine, layout: Layout, rng: np.random.Generator,
+                 road_class: str) -> None:
+        self.ref, self.layout, self.road_class = ref, layout, road_class
+        left, right = layout.paved_extent()
+        gore_hi, gore_lo = layout.gore_span()
+        # columns: z centre, bank, left edge, right edge, gore left, gore right
+        self.table = np.stack([ref.column('z'), ref.column('bank'), left, right,
+                               np.nan_to_num(gore_hi, nan=-1e9), np.nan_to_num(gore_lo, nan=1e9)],
+                              axis=1)
+        diff = np.diff(self.table, axis=0, append=self.table[-1:])
+        self._lerp6 = np.ascontiguousarray(np.concatenate([self.table, diff], axis=1))
+        self._lerp4 = np.ascontiguousarray(np.concatenate([self.table[:, :4], diff[:, :4]],
+                                                          axis=1))
+        self.sides = (_roadside(rng, road_class), _roadside(rng, road_class))  # left, right
+        self.asphalt = rng.uniform(0.07, 0.14)
+        # terrain undulation: a few plane waves in (s, d), wavelengths 8-60 m
+        k = 2 * np.pi / rng.uniform(8.0, 60.0, 4)
+        ang = rng.uniform(0, np.pi, 4)
+        self._waves = np.stack([k * np.cos(ang), k * np.sin(ang), rng.uniform(0, 2 * np.pi, 4)],
+                               axis=1)
+        self._relief = rng.uniform(0.1, 0.8)
+        # asphalt patches: lower-frequency pattern of repaired / aged surface
+        kp = 2 * np.pi / rng.uniform(5.0, 25.0, 3)
+        angp = rng.uniform(0, np.pi, 3)
+        self._patches = np.stack([kp * np.cos(angp), kp * np.sin(angp),
+                                  rng.uniform(0, 2 * np.pi, 3)], axis=1)
+
+    def _rows(self, s: np.ndarray, cols: int = 6) -> np.ndarray:
+        """The first `cols` (4 or 6) table columns at s, linearly interpolated: one gather
+        from a table that stores each row next to its difference to the following row."""
+        table = self._lerp4 if cols == 4 else self._lerp6
+        f = np.clip((s - self.ref.s0) / DS, 0.0, self.ref.size - 1.000001)
+        i = f.astype(np.intp)
+        rows = table[i]
+        n = table.shape[1] // 2
+        out = rows[:, n:] * (f - i)[:, None]
+        out += rows[:, :n]
+        return out
+
+    def _side(self, left: np.ndarray, name: str) -> np.ndarray:
+        return np.where(left, getattr(self.sides[0], name), getattr(self.sides[1], name))
+
+    def _waves_at(self, waves: np.ndarray, s: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """Mean of plane waves sin(ks s + kd d + phase) (float32 is plenty for texture)."""
+        s32, d32 = s.astype(np.float32), d.astype(np.float32)
+        out = np.zeros(s32.shape, dtype=np.float32)
+        for ks, kd, ph in waves.astype(np.float32):
+            out += np.sin(ks * s32 + kd * d32 + ph)
+        return out / np.float32(len(waves))
+
+    def height(self, s: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """Ground height at road coordinates (any matching shapes)."""
+        s, d = np.broadcast_arrays(np.asarray(s, dtype=np.float64),
+                                   np.asarray(d, dtype=np.float64))
+        shape = s.shape
+        s, d = s.reshape(-1), d.reshape(-1)
+        r = self._rows(s, 4)
+        e_left, e_right = r[:, 2], r[:, 3]
+        z = r[:, 0] + r[:, 1] * np.clip(d, e_right, e_left)
+        u = np.maximum(np.maximum(d - e_left, e_right - d), 0.0)  # distance beyond the edge
+        off = np.flatnonzero(u > 0)
+        if off.size:
+            z[off] += self._beyond(s[off], d[off], u[off], d[off] > 0.5 * (
+                e_left[off] + e_right[off]))
+        return z.reshape(shape)
+
+    def _beyond(self, s: np.ndarray, d: np.ndarray, u: np.ndarray, left: np.ndarray
+                ) -> np.ndarray:
+        """Height above the paved edge of points u > 0 beyond it: curb, sidewalk, terrain."""
+        walk = self._side(left, 'walk_w')
+        z = self._side(left, 'curb_h') + 0.02 * np.minimum(u, walk)
+        ut = np.maximum(u - walk - self._side(left, 'verge_w'), 0.0)  # terrain coordinate
+        z += 4.0 * np.tanh(self._side(left, 'slope') * np.maximum(ut - 0.5, 0.0) / 4.0)
+        bump = np.where((ut > 0.3) & (ut < 3.3), np.sin(np.pi * (ut - 0.3) / 3.0) ** 2, 0.0)
+        z -= self._side(left, 'ditch') * bump
+        rough = np.flatnonzero(ut > 0)  # relief grows with distance from the road edge
+        if rough.size:
+            z[rough] += self._relief * (1.0 - np.exp(-ut[rough] / 4.0)) * self._waves_at(
+                self._waves, s[rough], d[rough])
+        return z
+
+    def is_terrain(self, s: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """Points of open terrain, beyond the pavement, curbs, sidewalks and verges."""
+        r = self._rows(s, 4)
+        u = np.maximum(d - r[:, 2], r[:, 3] - d)
+        left = d > 0.5 * (r[:, 2] + r[:, 3])
+        return u > self._side(left, 'walk_w') + self._side(left, 'verge_w') + 0.5
+
+    def rows(self, s: np.ndarray) -> np.ndarray:
+        """Cross-section table at s, to share between material() and normal_slopes()."""
+        return self._rows(s)
+
+    def material(self, s: np.ndarray, d: np.ndarray, rows: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """Ground material id and diffuse reflectance (no paint) at road coordinates."""
+        r = self._rows(s) if rows is None else rows
+        e_left, e_right, g_hi, g_lo = r[:, 2], r[:, 3], r[:, 4], r[:, 5]
+        u = np.maximum(np.maximum(d - e_left, e_right - d), 0.0)
+        left = d > 0.5 * (e_left + e_right)
+        mat = np.full(s.shape, ASPHALT, dtype=np.uint8)
+        walk = self._side(left, 'walk_w')
+        verge = self._side(left, 'verge_w')
+        mat[(u > 0) & (u <= walk)] = CONCRETE
+        mat[(u > walk) & (u <= walk + verge)] = GRAVEL
+        mat[u > walk + verge] = GRASS
+        mat[(d < g_hi - 0.3) & (d > g_lo + 0.3) & (g_hi - g_lo > 2.5)] = GRASS  # open gore
+        patches = self._waves_at(self._patches, s, d)
+        rho = np.select([mat == ASPHALT, mat == CONCRETE, mat == GRAVEL],
+                        [self.asphalt * (1.0 + 0.25 * np.round(2 * patches) / 2),
+                         np.full(s.shape, 0.30), np.full(s.shape, 0.22)],
+                        0.35 + 0.1 * patches)
+        return mat, rho
+
+    def normal_slopes(self, s: np.ndarray, d: np.ndarray, z: np.ndarray, eps: float = 0.03,
+                      rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """dz/ds and dz/dd at ground points of height z: the road plane's grade and bank on
+        the pavement, forward differences beyond it (curb faces come out steep)."""
+        r = self._rows(s) if rows is None else rows
+        dzs = np.interp(s, self.ref.s, self.ref.column('grade'))
+        dzd = r[:, 1].copy()
+        off = np.flatnonzero((d > r[:, 2] - eps) | (d < r[:, 3] + eps))
+        if off.size:
+            so, do, zo = s[off], d[off], z[off]
+            dzs[off] = (self.height(so + eps, do) - zo) / eps
+            dzd[off] = (self.height(so, do + eps) - zo) / eps
+        return dzs, dzd
+
+
+class GroundGrid:
+    """Heightfield cache: square tiles of h, s, d (float32) at RES metres, built on demand,
+    and a block of tiles around the sensor assembled into one array for the ray marcher."""
+
+    TILE_CELLS = 128
+    RES = 0.5
+
+    def __init__(self, surface: Surface, max_tiles: int = 96) -> None:
+        self.surface = surface
+        self.tile_m = self.TILE_CELLS * self.RES
+        self._tiles: dict[tuple[int, int], np.ndarray] = {}
+        self._max_tiles = max_tiles
+        self._block_key: tuple[int, int, int, int] | None = None
+        self.origin = np.zeros(2)
+        self.h = self.s = self.d = np.zeros((0, 0), dtype=np.float32)
+        self.padded_h = np.full((2, 2), -np.inf, dtype=np.float32)
+
+    def _tile(self, tx: int, ty: int) -> np.ndarray:
+        tile = self._tiles.get((tx, ty))
+        if tile is None:
+            n, res = self.TILE_CELLS, self.RES
+            c = (np.arange(n) + 0.5) * res
+            x, y = np.meshgrid(tx * self.tile_m + c, ty * self.tile_m + c, indexing='xy')
+            s, d = self.surface.ref.project(np.stack([x, y], axis=-1))
+            tile = np.stack([self.surface.height(s, d), s, d]).astype(np.float32)
+            if len(self._tiles) >= self._max_tiles:  # drop the oldest tile
+                self._tiles.pop(next(iter(self._tiles)))
+            self._tiles[(tx, ty)] = tile
+        return tile
+
+    def ensure(self, xy: np.ndarray, radius: float) -> None:
+        """Make the block cover the square of half-size radius around xy."""
+        lo = np.floor((np.asarray(xy) - radius) / self.tile_m).astype(int)
+        hi = np.floor((np.asarray(xy) + radius) / self.tile_m).astype(int)
+        key = (int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1]))
+        if self._block_key is not None:
+            k = self._block_key
+            if k[0] <= key[0] and k[1] <= key[1] and k[2] >= key[2] and k[3] >= key[3]:
+                return
+        rows = [np.concatenate([self._tile(tx, ty) for tx in range(lo[0], hi[0] + 1)], axis=2)
+                for ty in range(lo[1], hi[1] + 1)]
+        block = np.concatenate(rows, axis=1)
+        self.h, self.s, self.d = block[0], block[1], block[2]
+        self.sd = np.ascontiguousarray(block[1:].reshape(2, -1).T.astype(np.float64))
+        # one ring of -inf cells around: marching rays clipped onto it never find ground
+        self.padded_h = np.pad(self.h, 1, constant_values=-np.inf)
+        self.origin = lo * self.tile_m
+        self._block_key = (int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1]))
+
+    def nearest_h(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Height of the cell containing each point (points outside: -inf, never ground)."""
+        ny, nx = self.h.shape
+        ix = np.floor((x - self.origin[0]) * (1.0 / self.RES)).astype(np.int32)
+        iy = np.floor((y - self.origin[1]) * (1.0 / self.RES)).astype(np.int32)
+        ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
+        out = self.h.ravel()[np.where(ok, iy * nx + ix, 0)]
+        return np.where(ok, out, -np.inf)
+
+    def _corners(self, x: np.ndarray, y: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+        """Flat index of the lower-left cell centre and the bilinear weights."""
+        ny, nx = self.h.shape
+        fx = np.clip((x - self.origin[0]) * (1.0 / self.RES) - 0.5, 0, nx - 1.0001)
+        fy = np.clip((y - self.origin[1]) * (1.0 / self.RES) - 0.5, 0, ny - 1.0001)
+        ix, iy = fx.astype(np.intp), fy.astype(np.intp)
+        return iy * nx + ix, fx - ix, fy - iy, nx
+
+    def height_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Cached height, bilinear between cell centres."""
+        flat, wx, wy, nx = self._corners(x, y)
+        h = self.h.ravel()
+        top = h[flat] + (h[flat + 1] - h[flat]) * wx
+        bottom = h[flat + nx] + (h[flat + nx + 1] - h[flat + nx]) * wx
+        return top + (bottom - top) * wy
+
+    def road_coords(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(s, d) by bilinear interpolation between cell centres (one gather per corner)."""
+        flat, wx, wy, nx = self._corners(x, y)
+        wx, wy = wx[:, None], wy[:, None]
+        sd = self.sd
+        top = sd[flat]
+        top += (sd[flat + 1] - top) * wx
+        bottom = sd[flat + nx]
+        bottom += (sd[flat + nx + 1] - bottom) * wx
+        top += (bottom - top) * wy
+        return top[:, 0], top[:, 1]

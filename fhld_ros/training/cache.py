@@ -1,0 +1,301 @@
+"""Training-window cache: simulator windows rasterised once, stored as compressed shards.
+
+Ray casting costs seconds per window, so windows are generated once (in parallel processes) and
+reused by every training run (docs/design.md §5). One shard per simulator seed,
+``shard_<seed>.npz`` (np.savez_compressed, no pickled objects):
+
+* ``raster_<i>``    (4, S, S) float16, window i (one zip member each, so a reader decompresses
+                    only the window it needs)
+* ``lane_points``   (P, 3) float32 GT points of every lane of every window, window frame
+* ``lane_offsets``  (L + 1,) int64: lane j is lane_points[lane_offsets[j]:lane_offsets[j + 1]]
+* ``window_lanes``  (n + 1,) int64: window i owns lanes window_lanes[i]:window_lanes[i + 1]
+* ``lane_ids``      (L,) int64 scene line index of each lane
+* ``window_to_odom`` (n, 4, 4) float64, ``stamps_ns`` (n,) int64, ``sweeps`` (n,) int64
+* ``meta``          JSON string: seed, scenario (sensor, topology, ...), road class, raster spec
+
+Shards are written to a temporary file and renamed, so a shard either exists complete or not at
+all; a build skips existing shards and so resumes after an interruption. The directory's
+``cache.json`` records the build settings; a build with other settings refuses to mix in.
+
+Split convention: training seeds and held-out test seeds come from disjoint ranges, test seeds
+from TEST_SEED_BASE up. The scenario of a seed (scenario_for_seed) cycles through the sensor
+presets and topologies so that any run of consecutive seeds covers all of them.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from fhld_ros.sim.layout import TOPOLOGIES
+from fhld_ros.sim.lidar import SENSORS
+
+SHARD_FORMAT = 1
+TEST_SEED_BASE = 1_000_000
+ALL_SENSORS: tuple[str, ...] = tuple(SENSORS)
+ALL_TOPOLOGIES: tuple[str | None, ...] = (None, *TOPOLOGIES)  # None: the layout's own events
+INDEX_NAME = 'cache.json'
+
+
+@dataclass(frozen=True)
+class CacheSettings:
+    """Everything that determines a shard's content besides its seed."""
+
+    windows_per_seed: int = 8
+    size_px: int = 640
+    resolution_m: float = 0.04
+    sweeps_per_sample: int = 10  # sweeps accumulated per window (1 s at 10 Hz)
+    stride: int = 10  # sweeps between windows (== sweeps_per_sample: no sweep is reused)
+    sensors: tuple[str, ...] = ALL_SENSORS
+    topologies: tuple[str | None, ...] = ALL_TOPOLOGIES
+    odom_noise_max: float = 1.0  # half the seeds drive with drift U(0, max), half exact
+    motion_distortion_prob: float = 0.25
+
+    def validate(self) -> None:
+        unknown = [s for s in self.sensors if s not in SENSORS]
+        if unknown or not self.sensors:
+            raise ValueError(f'unknown sensors {unknown} (choose from {", ".join(SENSORS)})')
+        bad = [t for t in self.topologies if t is not None and t not in TOPOLOGIES]
+        if bad or not self.topologies:
+            raise ValueError(f'unknown topologies {bad} (choose from none, '
+                             f'{", ".join(TOPOLOGIES)})')
+        if self.windows_per_seed < 1 or self.sweeps_per_sample < 1 or self.stride < 1:
+            raise ValueError('windows_per_seed, sweeps_per_sample and stride must be >= 1')
+        if self.size_px < 1 or not self.resolution_m > 0:
+            raise ValueError('size_px must be >= 1 and resolution_m > 0')
+
+    @property
+    def sweeps_per_seed(self) -> int:
+        return self.sweeps_per_sample + (self.windows_per_seed - 1) * self.stride
+
+    def to_dict(self) -> dict:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+
+def test_seeds(count: int) -> list[int]:
+    """The held-out seeds: TEST_SEED_BASE, TEST_SEED_BASE + 1, ..."""
+    return list(range(TEST_SEED_BASE, TEST_SEED_BASE + count))
+
+
+def scenario_for_seed(seed: int, settings: CacheSettings = CacheSettings()) -> dict:
+    """Simulator options of a seed: sensor = seed mod #sensors, topology = (seed + seed //
+    #sensors) mod #topologies, so n consecutive seeds cover min(n, #sensors) sensors and, when
+    #sensors >= #topologies, every topology; with gcd(#sensors + 1, #topologies) = 1 (8
+    sensors, 7 topologies by default) #sensors * #topologies consecutive seeds cover every pair.
+    Odometry drift and motion distortion are drawn from the seed."""
+    ns, nt = len(settings.sensors), len(settings.topologies)
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 0x5CE7A]))
+    drift = float(rng.uniform(0.0, settings.odom_noise_max)) if rng.random() < 0.5 else 0.0
+    return {'sensor': settings.sensors[seed % ns],
+            'topology': settings.topologies[(seed + seed // ns) % nt],
+            'odom_noise': round(drift, 3),
+            'motion_distortion': bool(rng.random() < settings.motion_distortion_prob)}
+
+
+def shard_path(out_dir: str | os.PathLike, seed: int) -> Path:
+    return Path(out_dir) / f'shard_{seed:07d}.npz'
+
+
+def make_shard(seed: int, settings: CacheSettings) -> dict[str, np.ndarray]:
+    """Simulate one seed's windows and pack them into the shard arrays."""
+    from fhld_ros.bev import BevSpec
+    from fhld_ros.sim.simulator import Simulator
+    from fhld_ros.training.samples import training_samples
+
+    scenario = scenario_for_seed(seed, settings)
+    sim = Simulator(seed, sweeps=settings.sweeps_per_seed, **scenario)
+    spec = BevSpec(settings.size_px, settings.resolution_m)
+    samples = list(training_samples(sim, settings.windows_per_seed,
+                                        sweeps_per_sample=settings.sweeps_per_sample,
+                                        stride=settings.stride, spec=spec))
+    lanes = [lane for s in samples for lane in s.lanes]
+    counts = [len(s.lanes) for s in samples]
+    arrays = {f'raster_{i:04d}': s.raster.astype(np.float16) for i, s in enumerate(samples)}
+    arrays.update(
+        lane_points=(np.concatenate(lanes).astype(np.float32) if lanes
+                     else np.zeros((0, 3), np.float32)),
+        lane_offsets=np.concatenate([[0], np.cumsum([len(lane) for lane in lanes])]).astype(
+            np.int64),
+        window_lanes=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+        lane_ids=np.array([i for s in samples for i in s.meta['line_ids']], dtype=np.int64),
+        window_to_odom=np.stack([s.window_to_odom for s in samples]),
+        stamps_ns=np.array([s.meta['stamp_ns'] for s in samples], dtype=np.int64),
+        sweeps=np.array([s.meta['sweep'] for s in samples], dtype=np.int64),
+        meta=np.array(json.dumps({
+            'format': SHARD_FORMAT, 'seed': seed, 'windows': len(samples),
+            'road_class': sim.scene.road_class, 'scenario': scenario,
+            'size_px': settings.size_px, 'resolution_m': settings.resolution_m,
+            'sweeps_per_sample': settings.sweeps_per_sample, 'stride': settings.stride})))
+    return arrays
+
+
+def write_shard(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """Atomic: a temporary file in the same directory, renamed into place."""
+    tmp = path.with_name(f'.{path.stem}.{os.getpid()}.tmp.npz')  # savez keeps a .npz suffix
+    try:
+        np.savez_compressed(tmp, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def read_meta(path: str | os.PathLike) -> dict:
+    with np.load(path, allow_pickle=False) as z:
+        meta = json.loads(str(z['meta']))
+    return meta
+
+
+_ONE_THREAD = {name: '1' for name in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS',
+                                       'MKL_NUM_THREADS')}
+
+
+def _init_worker() -> None:
+    """One thread per worker process: `workers` processes share the cores. BLAS (and torch,
+    should anything import it) read the spawn environment (_ONE_THREAD); importing torch just to
+    call set_num_threads would cost seconds per worker, so only an already loaded one is set."""
+    torch = sys.modules.get('torch')
+    if torch is not None:
+        torch.set_num_threads(1)
+
+
+@contextmanager
+def _environment(values: dict[str, str]) -> Iterator[None]:
+    """os.environ with values set (inherited by processes spawned meanwhile), then restored."""
+    saved = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _build_one(job: tuple[str, int, CacheSettings]) -> tuple[int, int, float]:
+    out_dir, seed, settings = job
+    start = time.perf_counter()
+    path = shard_path(out_dir, seed)
+    arrays = make_shard(seed, settings)
+    write_shard(path, arrays)
+    return seed, int(arrays['window_lanes'].shape[0] - 1), time.perf_counter() - start
+
+
+def _check_index(out_dir: Path, settings: CacheSettings) -> None:
+    """cache.json must match the requested settings (written on the first build)."""
+    index = out_dir / INDEX_NAME
+    wanted = {'format': SHARD_FORMAT, 'settings': settings.to_dict()}
+    if index.exists():
+        stored = json.loads(index.read_text())
+        if stored != wanted:
+            diff = {k: (stored.get('settings', {}).get(k), v)
+                    for k, v in wanted['settings'].items()
+                    if stored.get('settings', {}).get(k) != v}
+            raise ValueError(f'cache {out_dir} was built with other settings '
+                             f'(stored, requested): {diff or stored}; use another directory')
+        return
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tmp = index.with_name(f'.{INDEX_NAME}.{os.getpid()}.tmp')
+    tmp.write_text(json.dumps(wanted, indent=1))
+    os.replace(tmp, index)
+
+
+@dataclass
+class CacheReport:
+    built: list[int] = field(default_factory=list)  # seeds simulated by this call
+    skipped: list[int] = field(default_factory=list)  # shards that already existed
+    missing: list[int] = field(default_factory=list)  # left for later (deadline reached)
+    windows: int = 0  # windows simulated by this call
+    seconds: float = 0.0
+
+    @property
+    def windows_per_hour(self) -> float:
+        return 3600.0 * self.windows / self.seconds if self.seconds > 0 else math.nan
+
+    @property
+    def complete(self) -> bool:
+        return not self.missing
+
+
+def build_cache(out_dir: str | os.PathLike, seeds: Iterable[int],
+                settings: CacheSettings = CacheSettings(), workers: int = 2,
+                deadline: float | None = None, progress: bool = True) -> CacheReport:
+    """Simulate the shards of `seeds` missing from out_dir with `workers` processes.
+
+    Workers are spawned (safe whatever the parent holds: threads, torch, CUDA) and run one
+    torch thread each. `deadline` (time.monotonic()) stops handing out new seeds; shards in
+    flight are finished. Concurrent builds into one directory are not supported.
+    """
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from multiprocessing import get_context
+
+    from tqdm import tqdm
+
+    settings.validate()
+    out_dir = Path(out_dir)
+    _check_index(out_dir, settings)
+    for stale in out_dir.glob('.shard_*.tmp.npz'):  # left by a killed build
+        stale.unlink(missing_ok=True)
+    seeds = list(dict.fromkeys(int(s) for s in seeds))
+    report = CacheReport(skipped=[s for s in seeds if shard_path(out_dir, s).exists()])
+    todo = [s for s in seeds if not shard_path(out_dir, s).exists()]
+    start = time.perf_counter()
+    bar = tqdm(total=len(todo) * settings.windows_per_seed, unit='win', disable=not progress,
+               desc=f'cache {out_dir.name}', dynamic_ncols=True)
+    jobs = iter(todo)
+
+    def past_deadline() -> bool:
+        return deadline is not None and time.monotonic() >= deadline
+
+    def done(seed: int, windows: int) -> None:
+        report.built.append(seed)
+        report.windows += windows
+        bar.update(windows)
+
+    try:
+        if workers <= 1:
+            for seed in jobs:
+                if past_deadline():
+                    break
+                done(*_build_one((str(out_dir), seed, settings))[:2])
+        else:
+            with _environment(_ONE_THREAD), ProcessPoolExecutor(
+                    workers, mp_context=get_context('spawn'), initializer=_init_worker) as pool:
+                pending: set = set()
+                while True:
+                    while len(pending) < workers and not past_deadline():
+                        seed = next(jobs, None)
+                        if seed is None:
+                            break
+                        pending.add(pool.submit(_build_one, (str(out_dir), seed, settings)))
+                    if not pending:
+                        break
+                    finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+                    for fut in finished:
+                        done(*fut.result()[:2])
+    finally:
+        bar.close()
+        report.seconds = time.perf_counter() - start
+        report.missing = [s for s in todo if s not in set(report.built)]
+    return report
+
+
+def cache_seeds(out_dir: str | os.PathLike) -> list[int]:
+    """Seeds of the complete shards in a cache directory, sorted."""
+    return sorted(int(p.stem.split('_')[1]) for p in Path(out_dir).glob('shard_*.npz'))
+
+
+def check_disjoint(train: Sequence[int], test: Sequence[int]) -> None:
+    overlap = sorted(set(train) & set(test))
+    if overlap:
+        raise ValueError(f'training and test seeds overlap: {overlap[:5]}...')
