@@ -211,6 +211,7 @@ def test_criterion_handles_windows_without_lanes():
     losses['loss'].backward()
 
 
+@pytest.mark.slow
 def test_overfitting_one_sample_drives_the_loss_down():
     torch.manual_seed(0)
     cfg = small_config()

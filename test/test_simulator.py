@@ -75,6 +75,7 @@ def test_gt_lies_on_the_simulated_surface() -> None:
     assert np.median(np.abs(dz)) < 0.01
 
 
+@pytest.mark.slow
 def test_bright_ground_points_concentrate_on_gt_lines() -> None:
     """>= 80 % of paint returns (high intensity, on the ground) within 10 cm of a GT line,
     over several scenes with noise on; crosswalks, arrows and text are the rest."""
@@ -106,6 +107,7 @@ def _lines_at(layout, s: float) -> int:
     return sum(line.i0 <= row <= line.i1 for line in layout.lines)
 
 
+@pytest.mark.slow
 def test_every_topology_appears_across_seeds() -> None:
     seen: dict[str, int] = {}
     for seed in range(40):

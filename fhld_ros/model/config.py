@@ -61,7 +61,7 @@ class FhldConfig:
     # Inference: each cell is moved to the segment centre it predicted and classified again,
     # this many times. Training places cells within ~0.3 m of a lane (curve error + noise);
     # a global curve 0.5-1 m off leaves its cells where the head rejects the segment it still
-    # locates (validation F1@30 92.7 -> 97.1 with 2 steps). Inference only: any checkpoint.
+    # locates (docs/accuracy.md). Inference only: any checkpoint.
     local_refine_steps: int = 2
 
     # Ablation flags (paper Table 2) and training switches.

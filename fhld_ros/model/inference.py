@@ -15,6 +15,7 @@ shape on first use; another shape falls back to eager.
 """
 from __future__ import annotations
 
+import importlib.util
 import io
 import warnings
 
@@ -116,6 +117,5 @@ def serving_features(model: FhldDetector, device: str = 'cpu', runtime: str = 'a
 
 def _missing_onnx_packages() -> str:
     """'' when the exporter (onnx) and onnxruntime import, else the missing names."""
-    import importlib.util
     return ' and '.join(name for name in ('onnx', 'onnxruntime')
                         if importlib.util.find_spec(name) is None)

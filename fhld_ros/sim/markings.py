@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from matplotlib.path import Path
 
 from fhld_ros.sim.layout import Layout
 from fhld_ros.sim.road import DS, ReferenceLine
@@ -60,7 +61,6 @@ class Marking:
 
 def _rasterise(polygons: list[np.ndarray], length: float, width: float) -> np.ndarray:
     """Polygons in (u, v) metres, v centred on 0 -> stencil (nu, nv)."""
-    from matplotlib.path import Path
     nu, nv = int(np.ceil(length / STENCIL_RES)), int(np.ceil(width / STENCIL_RES))
     u, v = np.meshgrid((np.arange(nu) + 0.5) * STENCIL_RES,
                        (np.arange(nv) + 0.5) * STENCIL_RES - width / 2, indexing='ij')

@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 DS = 0.25  # table spacing along s (m)
 MAX_GRADE = 0.06
@@ -96,7 +97,6 @@ class ReferenceLine:
         xy = np.asarray(xy, dtype=np.float64)
         flat = xy.reshape(-1, 2)
         if self._tree is None:  # samples every 1 m; two Newton steps refine to sub-micron
-            from scipy.spatial import cKDTree
             self._stride = max(1, round(1.0 / DS))
             self._tree = cKDTree(self.table[::self._stride, :2])
         _, k = self._tree.query(flat)  # single-threaded: cache builders run many processes

@@ -21,7 +21,8 @@ import numpy as np
 
 from fhld_ros.sim import ego as ego_mod
 from fhld_ros.sim.gt_lines import crop_to_disc
-from fhld_ros.sim.layout import ROAD_CLASSES, TOPOLOGIES, Layout, TopologyEvent, make_layout
+from fhld_ros.sim.layout import ROAD_CLASSES, TOPOLOGIES, Layout, TopologyEvent
+from fhld_ros.sim.layout_builder import make_layout
 from fhld_ros.sim.lidar import (
     DEFAULT_SENSOR,
     INTENSITY_SCALES,
