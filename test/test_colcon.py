@@ -9,6 +9,10 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
 REPO = Path(__file__).resolve().parent.parent
 IGNORE = shutil.ignore_patterns('.venv', '.git', 'build', 'install', 'log', '__pycache__',
                                 '.pytest_cache', '.ruff_cache', '.hypothesis', 'out', '.cache',

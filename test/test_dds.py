@@ -6,8 +6,13 @@ import sys
 import time
 
 import numpy as np
+import pytest
+import rclpy
+from sensor_msgs.msg import PointCloud2
 
 from msg_adapters.pointcloud2 import read_xyzi
+
+pytestmark = pytest.mark.ros
 
 PUBLISHER = r'''
 import sys, time
@@ -34,9 +39,6 @@ while time.monotonic() < deadline:
 
 
 def test_pointcloud2_crosses_processes_on_loopback(ros_env, rclpy_context):
-    import rclpy
-    from sensor_msgs.msg import PointCloud2
-
     assert ros_env['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'LOCALHOST'
     assert ros_env['FASTRTPS_DEFAULT_PROFILES_FILE'].endswith('fastdds_loopback.xml')
     publisher = subprocess.Popen([sys.executable, '-c', PUBLISHER], env=ros_env)

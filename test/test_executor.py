@@ -5,16 +5,17 @@ import threading
 import time
 
 import pytest
+import rclpy
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from std_msgs.msg import String
+
+from fhld_ros.ros.executor import HandoffExecutor
+
+pytestmark = pytest.mark.ros
 
 
 def test_callbacks_in_other_groups_run_while_one_blocks(ros_env, rclpy_context):
     """A timer callback waits for a subscription callback: needs two workers at once."""
-    import rclpy
-    from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-    from std_msgs.msg import String
-
-    from fhld_ros.ros.executor import HandoffExecutor
-
     node = rclpy.create_node('handoff_probe', context=rclpy_context)
     received = threading.Event()
     outcome: list[bool] = []
@@ -44,10 +45,6 @@ def test_callbacks_in_other_groups_run_while_one_blocks(ros_env, rclpy_context):
 
 
 def test_callback_errors_surface_from_spin(ros_env, rclpy_context):
-    import rclpy
-
-    from fhld_ros.ros.executor import HandoffExecutor
-
     node = rclpy.create_node('handoff_errors', context=rclpy_context)
 
     def failing() -> None:

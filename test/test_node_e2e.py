@@ -13,9 +13,18 @@ import time
 
 import numpy as np
 import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from nav_msgs.msg import Path
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from visualization_msgs.msg import MarkerArray
 
 from fhld_ros.bagio import read_messages
+from msg_adapters.family import rclpy_family
 from msg_adapters.lanes import DELETEALL, marker_array_to_lanes
+from msg_adapters.pointcloud2 import create_cloud
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 SWEEPS = 30
 STARTUP_SWEEPS = 3
@@ -41,12 +50,6 @@ class Listener:
     """Collects the node's outputs in a background executor."""
 
     def __init__(self, context):
-        import rclpy
-        from diagnostic_msgs.msg import DiagnosticArray
-        from nav_msgs.msg import Path
-        from rclpy.qos import QoSProfile, ReliabilityPolicy
-        from visualization_msgs.msg import MarkerArray
-
         self.node = rclpy.create_node('e2e_listener', context=context)
         qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
         self.lanes, self.left, self.right, self.diagnostics = [], [], [], []
@@ -149,12 +152,6 @@ def test_bag_played_to_the_node_gives_the_replay_lanes(scene, node_process, ros_
 
 
 def test_bad_clouds_are_dropped_counted_and_the_node_lives(node_process, rclpy_context):
-    import rclpy
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-
-    from msg_adapters.family import rclpy_family
-    from msg_adapters.pointcloud2 import create_cloud
-
     family = rclpy_family()
     listener = Listener(rclpy_context)
     pub_node = rclpy.create_node('bad_cloud_publisher', context=rclpy_context)

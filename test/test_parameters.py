@@ -1,11 +1,15 @@
-"""One parameter table: DetectorParams, its descriptions and config/lane_detector.yaml agree."""
+"""One parameter table: DetectorParams, its field docs and config/lane_detector.yaml agree.
+
+That the node declares every field with its doc as the descriptor: test/test_node.py.
+"""
 import dataclasses
 from pathlib import Path
 
 import pytest
 
+from fhld_ros.dataclass_dict import field_docs
 from fhld_ros.errors import CliError
-from fhld_ros.ros.parameters import DESCRIPTIONS, DetectorParams, load_params_yaml
+from fhld_ros.ros.parameters import DetectorParams, load_params_yaml
 
 YAML = Path(__file__).resolve().parents[1] / 'config' / 'lane_detector.yaml'
 
@@ -15,8 +19,12 @@ def test_shipped_yaml_lists_every_parameter_at_its_default():
     text = YAML.read_text()
     for item in dataclasses.fields(DetectorParams):
         assert f'    {item.name}:' in text, item.name
-        assert DESCRIPTIONS[item.name]
-    assert set(DESCRIPTIONS) == {f.name for f in dataclasses.fields(DetectorParams)}
+
+
+def test_every_parameter_has_a_description():
+    docs = field_docs(DetectorParams)
+    assert set(docs) == {f.name for f in dataclasses.fields(DetectorParams)}
+    assert [name for name, doc in docs.items() if len(doc) < 10] == []
 
 
 def test_bad_values_are_named(tmp_path):
@@ -29,3 +37,23 @@ def test_bad_values_are_named(tmp_path):
         DetectorParams(detector='deep')
     with pytest.raises(ValueError, match='local_refine_steps must be an integer >= 0'):
         DetectorParams(local_refine_steps=-1)
+
+
+def test_unknown_parameters_and_missing_sections_are_named(tmp_path):
+    typo = tmp_path / 'typo.yaml'
+    typo.write_text('lane_detector:\n  ros__parameters:\n    use_sim_time: true\n'
+                    '    rate_hz: 5.0\n    rate: 5.0\n')
+    with pytest.raises(CliError, match=r'typo\.yaml: unknown key\(s\) rate \('):
+        load_params_yaml(typo)
+    other = tmp_path / 'other.yaml'
+    other.write_text('other_node:\n  ros__parameters:\n    rate_hz: 5.0\n')
+    with pytest.raises(CliError, match='has no lane_detector: ros__parameters section'):
+        load_params_yaml(other)
+
+
+def test_wildcard_section_and_lists_as_tuples(tmp_path):
+    wildcard = tmp_path / 'wildcard.yaml'
+    wildcard.write_text('/**:\n  ros__parameters:\n    use_sim_time: true\n    rate_hz: 5.0\n'
+                        '    lidar_to_base: [1.0, 0.0, 2.0, 0.0, 0.0, 0.0]\n')
+    assert load_params_yaml(wildcard) == DetectorParams(
+        rate_hz=5.0, lidar_to_base=(1.0, 0.0, 2.0, 0.0, 0.0, 0.0))

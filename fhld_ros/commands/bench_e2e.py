@@ -18,16 +18,26 @@ import threading
 import time
 
 import numpy as np
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+from fhld_ros.ros.env import loopback_dds_env
+from fhld_ros.sim.simulator import Simulator, Sweep
+from msg_adapters.family import rclpy_family
+from msg_adapters.odometry import make_odometry
+from msg_adapters.pointcloud2 import create_cloud
 
 SECONDS = float(os.environ.get('FHLD_BENCH_E2E_SECONDS', '30'))
 # node parameters for the run, e.g. FHLD_BENCH_E2E_PARAMS='model_threads:=2 detector:=classical'
 PARAMS = os.environ.get('FHLD_BENCH_E2E_PARAMS', '').split()
 DISTINCT_SWEEPS = 50  # simulated once, then replayed with fresh stamps
 RATE_HZ = 10.0
+START_NS = 1_700_000_000_000_000_000  # stamp of the first sweep
+NODE_START_TIMEOUT_SEC = 60.0
 
 
-def _sweeps(count: int) -> list:
-    from fhld_ros.sim.simulator import Simulator
+def _sweeps(count: int) -> list[Sweep]:
     sim = Simulator(seed=5, sweeps=count, sensor='os1-64', road='highway', speed=20.0)
     return [sim.sweep(k) for k in range(count)]
 
@@ -43,76 +53,76 @@ def marker_array_stamp_ns(raw: bytes) -> int:
     return sec * 1_000_000_000 + nanosec
 
 
-def bench_e2e(seconds: float = SECONDS) -> dict[str, float]:
-    from fhld_ros.ros.env import loopback_dds_env
-    os.environ.update(loopback_dds_env())
-    import rclpy
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
+class _BenchClient:
+    """This process's side: publishes sweeps and odometry, times /lanes, keeps /diagnostics."""
 
-    from msg_adapters.family import rclpy_family
-    from msg_adapters.odometry import make_odometry
-    from msg_adapters.pointcloud2 import create_cloud
+    def __init__(self, context: rclpy.Context) -> None:
+        self.family = family = rclpy_family()
+        self.node = rclpy.create_node('fhld_bench_e2e', context=context)
+        self.arrivals: list[tuple[int, float]] = []  # (/lanes stamp, arrival)
+        self.node_diag: dict[str, str] = {}
+        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        # Raw bytes: deserialising every MarkerArray in Python held this process's GIL for ms
+        # and delayed the next publish (measured: sweeps published right after a /lanes arrival
+        # took 33 ms to reach the node, 9 ms otherwise).
+        self.node.create_subscription(
+            family.cls('visualization_msgs/msg/MarkerArray'), 'lanes',
+            lambda raw: self.arrivals.append((marker_array_stamp_ns(raw), time.monotonic())),
+            reliable, raw=True)
+        self.node.create_subscription(
+            family.cls('diagnostic_msgs/msg/DiagnosticArray'), 'diagnostics',
+            lambda m: self.node_diag.update({kv.key: kv.value for st in m.status
+                                             for kv in st.values}),
+            reliable)
+        self.cloud_cls = family.cls('sensor_msgs/msg/PointCloud2')
+        self.points = self.node.create_publisher(self.cloud_cls, 'points', reliable)
+        self.odom = self.node.create_publisher(family.cls('nav_msgs/msg/Odometry'), 'odom',
+                                               reliable)
+        self.executor = SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.node)
+        self.spinner = threading.Thread(target=self.executor.spin, daemon=True)
+        self.spinner.start()
 
-    sweeps = _sweeps(DISTINCT_SWEEPS)
-    ros_args = ['--ros-args', *[a for p in PARAMS for a in ('-p', p)]] if PARAMS else []
-    node = subprocess.Popen([sys.executable, '-m', 'fhld_ros.ros.node', *ros_args],
-                            env=dict(os.environ),
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    family = rclpy_family()
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    bench = rclpy.create_node('fhld_bench_e2e', context=context)
-    arrivals: list[tuple[int, float]] = []
-    reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-    # Raw bytes: deserialising every MarkerArray in Python held this process's GIL for ms and
-    # delayed the next publish (measured: sweeps published right after a /lanes arrival took
-    # 33 ms to reach the node, 9 ms otherwise).
-    bench.create_subscription(family.cls('visualization_msgs/msg/MarkerArray'), 'lanes',
-                              lambda raw: arrivals.append((marker_array_stamp_ns(raw),
-                                                           time.monotonic())), reliable, raw=True)
-    node_diag: dict[str, str] = {}
-    bench.create_subscription(
-        family.cls('diagnostic_msgs/msg/DiagnosticArray'), 'diagnostics',
-        lambda m: node_diag.update({kv.key: kv.value for st in m.status for kv in st.values}),
-        reliable)
-    points = bench.create_publisher(family.cls('sensor_msgs/msg/PointCloud2'), 'points',
-                                    reliable)
-    odom = bench.create_publisher(family.cls('nav_msgs/msg/Odometry'), 'odom', reliable)
-    executor = rclpy.executors.SingleThreadedExecutor(context=context)
-    executor.add_node(bench)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
-    published: dict[int, float] = {}
-    try:
-        deadline = time.monotonic() + 60
-        while points.get_subscription_count() == 0 or odom.get_subscription_count() == 0:
+    def wait_for(self, node: subprocess.Popen) -> None:
+        """Until the node subscribes to both inputs (RuntimeError when it dies or times out)."""
+        deadline = time.monotonic() + NODE_START_TIMEOUT_SEC
+        while self.points.get_subscription_count() == 0 or self.odom.get_subscription_count() == 0:
             if time.monotonic() > deadline or node.poll() is not None:
                 raise RuntimeError('the lane_detector node did not come up')
             time.sleep(0.1)
         time.sleep(1.0)
-        start_ns, period = 1_700_000_000_000_000_000, 1.0 / RATE_HZ
-        cloud_cls = family.cls('sensor_msgs/msg/PointCloud2')
-        count = int(seconds * RATE_HZ)
+
+    def publish(self, sweeps: list[Sweep], count: int) -> dict[int, float]:
+        """`count` sweeps at RATE_HZ on the wall clock; stamp -> publish time of each."""
+        published: dict[int, float] = {}
         t0 = time.monotonic()
         for k in range(count):
             sweep = sweeps[k % len(sweeps)]
-            stamp = start_ns + k * 100_000_000
-            header = family.header(stamp, 'lidar')
-            cloud = create_cloud(cloud_cls, header, sweep.points, height=sweep.height)
-            due = t0 + k * period
-            time.sleep(max(0.0, due - time.monotonic()))
-            odom.publish(make_odometry(family, family.header(stamp, 'odom'), 'lidar',
-                                       sweep.sensor_to_odom))
+            stamp = START_NS + k * int(1e9 / RATE_HZ)
+            header = self.family.header(stamp, 'lidar')
+            cloud = create_cloud(self.cloud_cls, header, sweep.points, height=sweep.height)
+            time.sleep(max(0.0, t0 + k / RATE_HZ - time.monotonic()))
+            self.odom.publish(make_odometry(self.family, self.family.header(stamp, 'odom'),
+                                            'lidar', sweep.sensor_to_odom))
             published[stamp] = time.monotonic()
-            points.publish(cloud)
-        time.sleep(1.5)
-    finally:
-        node.terminate()
-        node.wait(timeout=20)
-        executor.shutdown()
-        spinner.join(timeout=10)
-        bench.destroy_node()
-        context.try_shutdown()
+            self.points.publish(cloud)
+        return published
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.spinner.join(timeout=10)
+        self.node.destroy_node()
+
+
+def _start_node() -> subprocess.Popen:
+    ros_args = ['--ros-args', *[a for p in PARAMS for a in ('-p', p)]] if PARAMS else []
+    return subprocess.Popen([sys.executable, '-m', 'fhld_ros.ros.node', *ros_args],
+                            env=dict(os.environ),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def _summary(seconds: float, published: dict[int, float], arrivals: list[tuple[int, float]],
+             node_diag: dict[str, str]) -> dict[str, float]:
     latencies = np.array([(t - published[s]) * 1e3 for s, t in arrivals if s in published])
     if latencies.size < 3:
         raise RuntimeError(f'only {latencies.size} /lanes messages arrived')
@@ -129,3 +139,22 @@ def bench_e2e(seconds: float = SECONDS) -> dict[str, float]:
         **{f'node_{k}': float(v) for k, v in node_diag.items()
            if k.startswith(('stage_', 'latency_ms_'))},
     }
+
+
+def bench_e2e(seconds: float = SECONDS) -> dict[str, float]:
+    os.environ.update(loopback_dds_env())  # before the node starts and rclpy.init reads it
+    sweeps = _sweeps(DISTINCT_SWEEPS)
+    node = _start_node()
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    client = _BenchClient(context)
+    try:
+        client.wait_for(node)
+        published = client.publish(sweeps, int(seconds * RATE_HZ))
+        time.sleep(1.5)
+    finally:
+        node.terminate()
+        node.wait(timeout=20)
+        client.close()
+        context.try_shutdown()
+    return _summary(seconds, published, client.arrivals, client.node_diag)

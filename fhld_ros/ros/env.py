@@ -13,6 +13,7 @@ def loopback_profile() -> Path:
     source = Path(__file__).resolve().parents[2] / 'config' / PROFILE_NAME
     if source.exists():
         return source
+    # only for an installed package: test/conftest.py imports this module first thing
     from ament_index_python.packages import get_package_share_directory
     return Path(get_package_share_directory('fhld_ros')) / 'config' / PROFILE_NAME
 

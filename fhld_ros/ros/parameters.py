@@ -1,10 +1,18 @@
-"""The detector's parameters, declared once for the node, `fhld replay` and config/*.yaml."""
+"""The detector's parameters, declared once for the node, `fhld replay` and config/*.yaml.
+
+Each field's metadata 'doc' is its one description: the node's ParameterDescriptor
+(`ros2 param describe lane_detector NAME`) reads it with fhld_ros.dataclass_dict.field_docs.
+This module needs no rclpy: the pipeline and `fhld replay` use it too.
+"""
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import yaml
+
+from fhld_ros.dataclass_dict import from_dict
 from fhld_ros.errors import CliError
 from fhld_ros.model.config import FhldConfig
 
@@ -13,25 +21,50 @@ from fhld_ros.model.config import FhldConfig
 class DetectorParams:
     """Every parameter of lane_detector; field metadata 'doc' is the ROS descriptor text."""
 
-    points_topic: str = 'points'
-    odom_topic: str = 'odom'
-    lanes_topic: str = 'lanes'
-    detector: str = 'fhld'
-    checkpoint: str = ''
-    device: str = 'cpu'
-    model_threads: int = 0
-    model_runtime: str = 'auto'
-    score_threshold: float = 0.5
-    refine_heights: bool = True
-    local_refine_steps: int = FhldConfig.local_refine_steps
-    size_px: int = 640
-    resolution_m: float = 0.04
-    accumulate_sec: float = 1.0
-    max_sweeps: int = 10
-    rate_hz: float = 10.0
-    intensity_scale: float = 0.0
-    input_reliability: str = 'auto'
-    lidar_to_base: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    points_topic: str = field(default='points', metadata={
+        'doc': 'input sensor_msgs/PointCloud2 topic'})
+    odom_topic: str = field(default='odom', metadata={
+        'doc': 'input nav_msgs/Odometry topic; without messages the node works per sweep'})
+    lanes_topic: str = field(default='lanes', metadata={
+        'doc': 'output MarkerArray topic; ego lane Paths go to <lanes_topic>/ego_left|right'})
+    detector: str = field(default='fhld', metadata={
+        'doc': "'fhld' (the learned model) or 'classical' (rule-based baseline)"})
+    checkpoint: str = field(default='', metadata={
+        'doc': 'FHLD weights (.pt); empty = the shipped fhld_ros/checkpoints/fhld.pt'})
+    device: str = field(default='cpu', metadata={
+        'doc': "'cpu' or 'cuda' for the model"})
+    model_threads: int = field(default=0, metadata={
+        'doc': 'CPU threads for the model; 0 = auto: one per core with ONNX Runtime, 1 with '
+               'TorchScript (whose OpenMP threads stalled beside the executor)'})
+    model_runtime: str = field(default='auto', metadata={
+        'doc': "how the model runs: 'auto' (ONNX Runtime on the CPU when installed, else "
+               "TorchScript), 'onnxruntime' (CPU) or 'torchscript'"})
+    score_threshold: float = field(default=0.5, metadata={
+        'doc': 'minimum lane confidence to publish'})
+    refine_heights: bool = field(default=True, metadata={
+        'doc': 'FHLD lane heights follow the measured road surface (robust fit of the '
+               "raster's minimum heights); false keeps the model's own heights"})
+    local_refine_steps: int = field(default=FhldConfig.local_refine_steps, metadata={
+        'doc': 'FHLD anchor cells re-centred on the segment they found and classified again '
+               'this many times (0 = on the global curves only)'})
+    size_px: int = field(default=640, metadata={
+        'doc': 'BEV window size in cells (square)'})
+    resolution_m: float = field(default=0.04, metadata={
+        'doc': 'BEV cell size in metres'})
+    accumulate_sec: float = field(default=1.0, metadata={
+        'doc': 'sweeps younger than this (relative to the newest) are accumulated'})
+    max_sweeps: int = field(default=10, metadata={
+        'doc': 'at most this many sweeps are accumulated (memory bound)'})
+    rate_hz: float = field(default=10.0, metadata={
+        'doc': 'detection rate; the timer runs on ROS time (use_sim_time for bags)'})
+    intensity_scale: float = field(default=0.0, metadata={
+        'doc': 'full scale of the intensity field; 0 = infer per sweep (1, 255, 65535)'})
+    input_reliability: str = field(default='auto', metadata={
+        'doc': "points subscription reliability: 'auto' (reliable, switching to best effort "
+               "while a best-effort publisher exists), 'reliable' or 'best_effort'"})
+    lidar_to_base: tuple[float, ...] = field(default=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0), metadata={
+        'doc': 'static cloud frame -> odometry child frame [x, y, z, roll, pitch, yaw], used '
+               'when the cloud frame differs from child_frame_id'})
 
     def __post_init__(self) -> None:
         problems = []
@@ -60,60 +93,22 @@ class DetectorParams:
             raise ValueError('; '.join(problems))
 
 
-DESCRIPTIONS: dict[str, str] = {
-    'points_topic': 'input sensor_msgs/PointCloud2 topic',
-    'odom_topic': 'input nav_msgs/Odometry topic; without messages the node works per sweep',
-    'lanes_topic': 'output MarkerArray topic; ego lane Paths go to <lanes_topic>/ego_left|right',
-    'detector': "'fhld' (the learned model) or 'classical' (rule-based baseline)",
-    'checkpoint': 'FHLD weights (.pt); empty = the shipped fhld_ros/checkpoints/fhld.pt',
-    'device': "'cpu' or 'cuda' for the model",
-    'model_threads': 'CPU threads for the model; 0 = auto: one per core with ONNX Runtime, 1 '
-                     'with TorchScript (whose OpenMP threads stalled beside the executor)',
-    'model_runtime': "how the model runs: 'auto' (ONNX Runtime on the CPU when installed, "
-                     "else TorchScript), 'onnxruntime' (CPU) or 'torchscript'",
-    'score_threshold': 'minimum lane confidence to publish',
-    'refine_heights': 'FHLD lane heights follow the measured road surface (robust fit of the '
-                      "raster's minimum heights); false keeps the model's own heights",
-    'local_refine_steps': 'FHLD anchor cells re-centred on the segment they found and '
-                          'classified again this many times (0 = on the global curves only)',
-    'size_px': 'BEV window size in cells (square)',
-    'resolution_m': 'BEV cell size in metres',
-    'accumulate_sec': 'sweeps younger than this (relative to the newest) are accumulated',
-    'max_sweeps': 'at most this many sweeps are accumulated (memory bound)',
-    'rate_hz': 'detection rate; the timer runs on ROS time (use_sim_time for bags)',
-    'intensity_scale': 'full scale of the intensity field; 0 = infer per sweep (1, 255, 65535)',
-    'input_reliability': "points subscription reliability: 'auto' (reliable, switching to "
-                         "best effort while a best-effort publisher exists), 'reliable' or "
-                         "'best_effort'",
-    'lidar_to_base': 'static cloud frame -> odometry child frame [x, y, z, roll, pitch, yaw], '
-                     'used when the cloud frame differs from child_frame_id',
-}
-
-
 def load_params_yaml(path: str | Path, node_name: str = 'lane_detector') -> DetectorParams:
-    """DetectorParams from a ROS 2 parameter file (`<node>: ros__parameters: {...}`)."""
-    import yaml
+    """DetectorParams from a ROS 2 parameter file (`<node>: ros__parameters: {...}`).
+
+    The node's section, else the `/**` wildcard one; use_sim_time (a parameter of every node)
+    is accepted and left to ROS.
+    """
     path = Path(path)
     try:
         document = yaml.safe_load(path.read_text())
     except (OSError, yaml.YAMLError) as exc:
         raise CliError(f'cannot read parameter file {path}: {exc}') from exc
-    section: Any = document
-    for key in (node_name, 'ros__parameters'):
-        if not isinstance(section, dict) or key not in section:
-            alt = '/**' if isinstance(section, dict) and '/**' in section else None
-            if alt and key == node_name:
-                section = section[alt]
-                continue
-            raise CliError(f'parameter file {path} has no {node_name}: ros__parameters section')
-        section = section[key]
-    known = {f.name for f in fields(DetectorParams)}
-    unknown = sorted(set(section) - known - {'use_sim_time'})
-    if unknown:
-        raise CliError(f'parameter file {path}: unknown parameter(s) {", ".join(unknown)}')
-    values = {k: (tuple(v) if isinstance(v, list) else v) for k, v in section.items()
-              if k in known}
+    section: Any = (document.get(node_name, document.get('/**'))
+                    if isinstance(document, dict) else None)
+    if not isinstance(section, dict) or 'ros__parameters' not in section:
+        raise CliError(f'parameter file {path} has no {node_name}: ros__parameters section')
     try:
-        return DetectorParams(**values)
-    except (TypeError, ValueError) as exc:
+        return from_dict(DetectorParams, section['ros__parameters'], ignore=('use_sim_time',))
+    except (TypeError, ValueError) as exc:  # TypeError: a value of the wrong kind
         raise CliError(f'parameter file {path}: {exc}') from exc

@@ -10,7 +10,14 @@ import argparse
 import time
 from pathlib import Path
 
+import rclpy
+from rclpy.node import Node
+from rclpy.publisher import Publisher
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+from fhld_ros.bagio import bag_topics, read_raw
 from fhld_ros.errors import CliError
+from msg_adapters.family import rclpy_family
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -29,44 +36,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if not args.rate > 0:
         raise CliError(f'--rate must be positive, got {args.rate}')
-    import rclpy
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-
-    from fhld_ros.bagio import bag_topics, read_raw
-    from msg_adapters.family import rclpy_family
-
     available = bag_topics(args.bag, args.topics)  # names any topic the bag lacks
-    topics = sorted(available)
-    family = rclpy_family()
     rclpy.init()
     node = rclpy.create_node('fhld_play')
     try:
-        reliability = (ReliabilityPolicy.BEST_EFFORT if args.best_effort
-                       else ReliabilityPolicy.RELIABLE)
-        qos = QoSProfile(depth=10, reliability=reliability)
-        publishers = {t: node.create_publisher(family.cls(available[t]), t, qos) for t in topics}
-        clock = None if args.no_clock else node.create_publisher(
-            family.cls('rosgraph_msgs/msg/Clock'), '/clock', 10)
-        for topic in args.wait_for:
-            if topic not in publishers:
-                raise CliError(f'--wait-for {topic} is not among the published topics')
-            _wait_for_subscriber(publishers[topic], topic, args.wait_timeout)
-        if args.wait_for:
-            # the writer sees the match before the reader does, and a reliable reader drops
-            # samples from writers it does not know yet: give discovery a moment to finish
-            time.sleep(1.0)
-        count, start_wall, start_bag = 0, None, None
-        for topic, _, stamp, raw in read_raw(args.bag, topics):
-            if start_wall is None:
-                start_wall, start_bag = time.monotonic(), stamp
-            due = start_wall + (stamp - start_bag) * 1e-9 / args.rate
-            delay = due - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            if clock is not None:
-                clock.publish(family.new('rosgraph_msgs/msg/Clock', clock=family.stamp(stamp)))
-            publishers[topic].publish(raw)  # rclpy publishes serialized bytes as they are
-            count += 1
+        count = _play(node, args, available)
         time.sleep(0.5)  # let reliable writers deliver the tail before the node goes away
         print(f'published {count} messages from {args.bag}')
     finally:
@@ -75,7 +49,38 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _wait_for_subscriber(publisher, topic: str, timeout: float) -> None:
+def _play(node: Node, args: argparse.Namespace, available: dict[str, str]) -> int:
+    """Publish the bag's messages on their topics at their log times; returns the count."""
+    family = rclpy_family()
+    topics = sorted(available)
+    reliability = ReliabilityPolicy.BEST_EFFORT if args.best_effort else ReliabilityPolicy.RELIABLE
+    qos = QoSProfile(depth=10, reliability=reliability)
+    publishers = {t: node.create_publisher(family.cls(available[t]), t, qos) for t in topics}
+    clock = None if args.no_clock else node.create_publisher(
+        family.cls('rosgraph_msgs/msg/Clock'), '/clock', 10)
+    for topic in args.wait_for:
+        if topic not in publishers:
+            raise CliError(f'--wait-for {topic} is not among the published topics')
+        _wait_for_subscriber(publishers[topic], topic, args.wait_timeout)
+    if args.wait_for:
+        # the writer sees the match before the reader does, and a reliable reader drops
+        # samples from writers it does not know yet: give discovery a moment to finish
+        time.sleep(1.0)
+    count, start_wall, start_bag = 0, None, None
+    for topic, _, stamp, raw in read_raw(args.bag, topics):
+        if start_wall is None:
+            start_wall, start_bag = time.monotonic(), stamp
+        delay = start_wall + (stamp - start_bag) * 1e-9 / args.rate - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        if clock is not None:
+            clock.publish(family.new('rosgraph_msgs/msg/Clock', clock=family.stamp(stamp)))
+        publishers[topic].publish(raw)  # rclpy publishes serialized bytes as they are
+        count += 1
+    return count
+
+
+def _wait_for_subscriber(publisher: Publisher, topic: str, timeout: float) -> None:
     """Block until the publisher has matched a subscription (not just seen it in the graph)."""
     deadline = time.monotonic() + timeout
     while publisher.get_subscription_count() == 0:
