@@ -1,6 +1,7 @@
 """Training infrastructure: window cache, dataset + augmentation, `fhld train` (resume, DDP)."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -11,10 +12,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from model_fixtures import small_config
+from scipy.spatial import cKDTree
 
 from fhld_ros.bev import EMPTY_MIN_HEIGHT, BevSpec
 from fhld_ros.cli import main as fhld
+from fhld_ros.model.checkpoint import load_checkpoint
 from fhld_ros.sim.simulator import Simulator
+from fhld_ros.training.augment import (
+    AugmentParams,
+    Similarity,
+    augment,
+    centre_crop,
+    warp_lanes,
+    warp_raster,
+    warp_rasters,
+)
 from fhld_ros.training.cache import (
     ALL_SENSORS,
     ALL_TOPOLOGIES,
@@ -24,61 +37,52 @@ from fhld_ros.training.cache import (
     scenario_for_seed,
     shard_path,
 )
-from fhld_ros.training.dataset import (
-    CacheDataset,
-    Similarity,
-    augment,
-    centre_crop,
-    collate,
-    warp_lanes,
-    warp_raster,
-    warp_rasters,
-)
+from fhld_ros.training.dataset import CacheDataset, collate
 from fhld_ros.training.samples import training_samples
 
+pytestmark = pytest.mark.usefixtures('one_torch_thread')
+
 REPO = Path(__file__).resolve().parent.parent
-RES = 0.2  # tiny rasters: 128 px (160 px cached for training) at 20 cm
+MODEL = small_config(lsm_warmup=1)  # 128 px at 20 cm: tiny rasters, a narrow network
+RES = MODEL.resolution_m
+# training windows cached at 160 px (the model's 128 px cut out after augmentation)
 TINY = CacheSettings(windows_per_seed=2, size_px=160, resolution_m=RES, sweeps_per_sample=2,
                      stride=2, sensors=('vlp16',))
+TINY_TEST = dataclasses.replace(TINY, size_px=MODEL.size_px)  # held out: the model's raster
 TRAIN_SEEDS = (0, 2)
 TEST_SEED = 1_000_000
-MODEL = dict(size_px=128, resolution_m=RES, widths=[8, 16, 32, 64], d_model=64, ffn_dim=128,
-             enc_layers=1, dec_layers=2, num_queries=6, cell_px=8, cells_per_lane=16,
-             noise_px=1.0, infer_spacing_px=6.0, local_channels=16, local_hidden=64,
-             lsm_warmup=1)
-
-
-@pytest.fixture(scope='module', autouse=True)
-def one_torch_thread():
-    """Tiny models: a second OpenMP thread only waits for a core on this shared machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope='module')
 def caches(tmp_path_factory) -> Path:
+    """Training and test cache of the TINY settings (built inline; the pool has its own test)."""
     root = tmp_path_factory.mktemp('cache')
-    # the training cache through the spawned worker pool, the test cache inline
-    report = build_cache(root / 'train', range(*TRAIN_SEEDS), TINY, workers=2, progress=False)
-    assert sorted(report.built) == [0, 1] and report.windows == 4 and report.complete
-    test = CacheSettings(**{**TINY.__dict__, 'size_px': 128})
-    build_cache(root / 'test', [TEST_SEED], test, workers=1, progress=False)
+    build_cache(root / 'train', range(*TRAIN_SEEDS), TINY, workers=1, progress=False)
+    build_cache(root / 'test', [TEST_SEED], TINY_TEST, workers=1, progress=False)
     return root
 
 
 def write_config(path: Path, caches: Path, **train) -> Path:
-    cfg = {'seed': 3, 'model': MODEL,
+    """A training config over the `caches` fixture; `train` overrides the train section."""
+    cfg = {'seed': 3, 'model': MODEL.to_dict(),
            'data': {'train_cache': str(caches / 'train'), 'test_cache': str(caches / 'test'),
                     'train_seeds': list(TRAIN_SEEDS), 'test_seeds': [TEST_SEED, TEST_SEED + 1],
-                    'train_windows_per_seed': 2, 'test_windows_per_seed': 2,
-                    'train_size_px': 160, 'sweeps_per_sample': 2, 'stride': 2,
-                    'sensors': ['vlp16'], 'cache_workers': 1},
+                    'train_windows_per_seed': TINY.windows_per_seed,
+                    'test_windows_per_seed': TINY_TEST.windows_per_seed,
+                    'train_size_px': TINY.size_px, 'sweeps_per_sample': TINY.sweeps_per_sample,
+                    'stride': TINY.stride, 'sensors': list(TINY.sensors), 'cache_workers': 1},
            'train': {'iterations': 3, 'batch_size': 2, 'eval_every': 100, 'ckpt_every': 100,
                      'log_every': 1, 'eval_windows': 1, 'eval_batch_size': 1, **train}}
     path.write_text(json.dumps(cfg))  # JSON is YAML
     return path
+
+
+def train_argv(cfg: Path, out: Path) -> list[str]:
+    return ['train', '--config', str(cfg), '--out', str(out), '--quiet']
+
+
+def load_payload(path: Path) -> dict:
+    return torch.load(path, map_location='cpu', weights_only=True)
 
 
 # --- (a) cache ----------------------------------------------------------------------------
@@ -91,7 +95,7 @@ def test_cache_round_trip_matches_the_simulator(caches):
     assert len(data) == 4 and data.size_px == 160 and data.resolution_m == RES
     sim = Simulator(1, sweeps=TINY.sweeps_per_seed, **meta['scenario'])
     samples = list(training_samples(sim, 2, sweeps_per_sample=2, stride=2,
-                                        spec=BevSpec(160, RES)))
+                                    spec=BevSpec(160, RES)))
     for k, sample in enumerate(samples):
         item = data[2 + k]
         assert (item['seed'], item['window']) == (1, k)
@@ -107,11 +111,24 @@ def test_cache_round_trip_matches_the_simulator(caches):
     assert all(np.abs(lane[:, :2]).max() <= 128 * RES / 2 + 1e-9 for lane in crop['lanes'])
 
 
+@pytest.mark.slow
+def test_cache_pool_builds_the_same_shards(caches, tmp_path):
+    """The spawned worker pool writes what the inline build wrote."""
+    report = build_cache(tmp_path, range(*TRAIN_SEEDS), TINY, workers=2, progress=False)
+    assert sorted(report.built) == [0, 1] and report.windows == 4 and report.complete
+    for seed in range(*TRAIN_SEEDS):
+        with (np.load(shard_path(tmp_path, seed)) as pool,
+              np.load(shard_path(caches / 'train', seed)) as inline):
+            assert sorted(pool.files) == sorted(inline.files)
+            for name in pool.files:
+                np.testing.assert_array_equal(pool[name], inline[name], err_msg=name)
+
+
 def test_cache_build_resumes_and_refuses_other_settings(caches):
     again = build_cache(caches / 'train', range(*TRAIN_SEEDS), TINY, workers=2, progress=False)
     assert again.built == [] and sorted(again.skipped) == [0, 1]
     assert not list((caches / 'train').glob('.*tmp*'))  # atomic writes leave nothing behind
-    other = CacheSettings(**{**TINY.__dict__, 'windows_per_seed': 3})
+    other = dataclasses.replace(TINY, windows_per_seed=3)
     with pytest.raises(ValueError, match='other settings'):
         build_cache(caches / 'train', [5], other, workers=1, progress=False)
 
@@ -166,7 +183,6 @@ def test_identity_flip_and_crop_are_exact():
 def test_augmented_lanes_land_on_the_painted_pixels(seed):
     raster, lanes = painted(160, RES)
     rng = np.random.default_rng(seed)
-    from fhld_ros.training.dataset import AugmentParams
     params = AugmentParams(shift_m=2.0, rotate_deg=25.0, flip_prob=0.5, scale_min=0.8,
                            scale_max=1.2)
     out, out_lanes = augment(raster, lanes, rng, params, out_size=128, resolution_m=RES)
@@ -190,14 +206,12 @@ def test_augmented_lanes_land_on_the_painted_pixels(seed):
     centres = spec.pixel_to_world(np.stack([cols, rows], 1) + 0.5)
     dense = np.concatenate([np.linspace(a[:2], b[:2], 20) for lane in out_lanes
                             for a, b in zip(lane[:-1], lane[1:])])
-    from scipy.spatial import cKDTree
     dist, _ = cKDTree(dense).query(centres)
     assert dist.max() < 1.5 * RES * 1.25  # sqrt(2) source px, times the largest scale
     assert all(np.abs(lane[:, :2]).max() < 128 * RES / 2 + 1e-9 for lane in out_lanes)
 
 
 def test_dataset_augmentation_is_keyed_by_seed_epoch_index(caches):
-    from fhld_ros.training.dataset import AugmentParams
     data = CacheDataset(caches / 'train', out_size=128, augment=AugmentParams(), seed=1)
     items = [data[1], data[2]]  # seed 0 window 1, seed 1 window 0
     assert items[0]['raster'].shape == (4, 128, 128)
@@ -220,15 +234,10 @@ def test_dataset_augmentation_is_keyed_by_seed_epoch_index(caches):
 
 # --- (c) training, checkpoints, resume --------------------------------------------------------
 
-def load_payload(path: Path) -> dict:
-    return torch.load(path, map_location='cpu', weights_only=True)
-
-
+@pytest.mark.slow
 def test_train_stops_on_budget_and_resumes_exactly(caches, tmp_path):
-    from fhld_ros.model.checkpoint import load_checkpoint
-
     cfg = write_config(tmp_path / 'tiny.yaml', caches)
-    assert fhld(['train', '--config', str(cfg), '--out', str(tmp_path / 'a'), '--quiet']) == 0
+    assert fhld(train_argv(cfg, tmp_path / 'a')) == 0
     straight = load_payload(tmp_path / 'a' / 'last.pt')
     assert straight['meta']['iteration'] == 3
     assert '--config' in straight['train_command']
@@ -238,7 +247,7 @@ def test_train_stops_on_budget_and_resumes_exactly(caches, tmp_path):
     log = [json.loads(line) for line in (tmp_path / 'a' / 'log.jsonl').read_text().splitlines()]
     assert [r['iteration'] for r in log if 'loss' in r] == [1, 2, 3]
 
-    run_b = ['train', '--config', str(cfg), '--out', str(tmp_path / 'b'), '--quiet']
+    run_b = train_argv(cfg, tmp_path / 'b')
     assert fhld([*run_b, '--max-minutes', '0']) == 0  # budget spent: one iteration, then stop
     stopped = load_payload(tmp_path / 'b' / 'last.pt')
     assert stopped['meta']['iteration'] == 1 and 'optimizer' in stopped['meta']['train_state']
@@ -262,6 +271,7 @@ def test_bad_config_is_one_clear_error(tmp_path, capsys):
 
 # --- (d) DDP --------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_ddp_gloo_two_processes(caches, tmp_path):
     cfg = write_config(tmp_path / 'ddp.yaml', caches, iterations=2, batch_size=1)
     env = {**os.environ, 'OMP_NUM_THREADS': '1', 'PYTHONPATH': str(REPO)}

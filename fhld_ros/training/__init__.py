@@ -1,2 +1,3 @@
 """Training the FHLD detector: simulator windows cached once (cache.py, samples.py), read with
-augmentation (dataset.py), and the `fhld train` loop (train.py)."""
+augmentation (dataset.py, augment.py), and `fhld train` (train.py: config.py, loop.py, resume.py,
+distributed.py, runlog.py). How to run it: docs/training.md."""

@@ -28,15 +28,22 @@ import math
 import os
 import sys
 import time
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
+from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
+from fhld_ros.bev import BevSpec
+from fhld_ros.dataclass_dict import to_plain
 from fhld_ros.sim.layout import TOPOLOGIES
 from fhld_ros.sim.lidar import SENSORS
+from fhld_ros.sim.simulator import Simulator
+from fhld_ros.training.samples import training_samples
 
 SHARD_FORMAT = 1
 TEST_SEED_BASE = 1_000_000
@@ -76,14 +83,6 @@ class CacheSettings:
     def sweeps_per_seed(self) -> int:
         return self.sweeps_per_sample + (self.windows_per_seed - 1) * self.stride
 
-    def to_dict(self) -> dict:
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
-
-
-def test_seeds(count: int) -> list[int]:
-    """The held-out seeds: TEST_SEED_BASE, TEST_SEED_BASE + 1, ..."""
-    return list(range(TEST_SEED_BASE, TEST_SEED_BASE + count))
-
 
 def scenario_for_seed(seed: int, settings: CacheSettings = CacheSettings()) -> dict:
     """Simulator options of a seed: sensor = seed mod #sensors, topology = (seed + seed //
@@ -106,16 +105,12 @@ def shard_path(out_dir: str | os.PathLike, seed: int) -> Path:
 
 def make_shard(seed: int, settings: CacheSettings) -> dict[str, np.ndarray]:
     """Simulate one seed's windows and pack them into the shard arrays."""
-    from fhld_ros.bev import BevSpec
-    from fhld_ros.sim.simulator import Simulator
-    from fhld_ros.training.samples import training_samples
-
     scenario = scenario_for_seed(seed, settings)
     sim = Simulator(seed, sweeps=settings.sweeps_per_seed, **scenario)
     spec = BevSpec(settings.size_px, settings.resolution_m)
     samples = list(training_samples(sim, settings.windows_per_seed,
-                                        sweeps_per_sample=settings.sweeps_per_sample,
-                                        stride=settings.stride, spec=spec))
+                                    sweeps_per_sample=settings.sweeps_per_sample,
+                                    stride=settings.stride, spec=spec))
     lanes = [lane for s in samples for lane in s.lanes]
     counts = [len(s.lanes) for s in samples]
     arrays = {f'raster_{i:04d}': s.raster.astype(np.float16) for i, s in enumerate(samples)}
@@ -194,7 +189,7 @@ def _build_one(job: tuple[str, int, CacheSettings]) -> tuple[int, int, float]:
 def _check_index(out_dir: Path, settings: CacheSettings) -> None:
     """cache.json must match the requested settings (written on the first build)."""
     index = out_dir / INDEX_NAME
-    wanted = {'format': SHARD_FORMAT, 'settings': settings.to_dict()}
+    wanted = {'format': SHARD_FORMAT, 'settings': to_plain(settings)}
     if index.exists():
         stored = json.loads(index.read_text())
         if stored != wanted:
@@ -236,11 +231,6 @@ def build_cache(out_dir: str | os.PathLike, seeds: Iterable[int],
     torch thread each. `deadline` (time.monotonic()) stops handing out new seeds; shards in
     flight are finished. Concurrent builds into one directory are not supported.
     """
-    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-    from multiprocessing import get_context
-
-    from tqdm import tqdm
-
     settings.validate()
     out_dir = Path(out_dir)
     _check_index(out_dir, settings)
@@ -294,8 +284,3 @@ def cache_seeds(out_dir: str | os.PathLike) -> list[int]:
     """Seeds of the complete shards in a cache directory, sorted."""
     return sorted(int(p.stem.split('_')[1]) for p in Path(out_dir).glob('shard_*.npz'))
 
-
-def check_disjoint(train: Sequence[int], test: Sequence[int]) -> None:
-    overlap = sorted(set(train) & set(test))
-    if overlap:
-        raise ValueError(f'training and test seeds overlap: {overlap[:5]}...')
