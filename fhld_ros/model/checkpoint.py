@@ -22,6 +22,9 @@ from fhld_ros.model.detector import FhldDetector
 
 FORMAT = 'fhld-checkpoint'
 FORMAT_VERSION = 1
+# Config fields added after checkpoints existed, with the value those checkpoints were built
+# with (inference-only fields such as local_refine_steps take the current default instead).
+LEGACY_CONFIG_DEFAULTS: dict[str, Any] = {'stem_kernel': 7}
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent.parent / 'checkpoints' / 'fhld.pt'
 
 
@@ -94,7 +97,7 @@ def load_checkpoint(path: str | os.PathLike, expect: FhldConfig | None = None,
         raise CheckpointError(f'checkpoint {path} has format version '
                               f'{payload.get("format_version")}, this code reads {FORMAT_VERSION}')
     try:
-        config = FhldConfig.from_dict(payload['config'])
+        config = FhldConfig.from_dict({**LEGACY_CONFIG_DEFAULTS, **payload['config']})
         config.validate()
     except (KeyError, TypeError, ValueError) as exc:
         raise CheckpointError(f'checkpoint {path} has an unusable config: {exc}') from exc

@@ -12,10 +12,6 @@ from typing import Any
 
 from fhld_ros.dataclass_dict import from_dict, to_plain
 
-# Fields added after checkpoints existed, with the value those checkpoints were built with
-# (inference-only fields such as local_refine_steps take the current default instead).
-_LEGACY_DEFAULTS: dict[str, Any] = {'stem_kernel': 7}
-
 
 @dataclass(frozen=True)
 class FhldConfig:
@@ -103,7 +99,7 @@ class FhldConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> FhldConfig:
-        return from_dict(cls, {**_LEGACY_DEFAULTS, **data}, where='the model config')
+        return from_dict(cls, data, where='the model config')
 
     def validate(self) -> None:
         if self.size_px % 32:
