@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 PYTEST_ARGS ?=
 
-.PHONY: venv test demo lint bench clean
+.PHONY: venv test test-fast demo lint bench clean
 
 venv: $(STAMP)
 
@@ -21,8 +21,13 @@ $(STAMP): requirements.txt constraints.txt setup.py setup.cfg package.xml
 lint: venv
 	$(VENV)/bin/ruff check fhld_ros msg_adapters test setup.py
 
+# the whole suite: unit tests, real DDS between processes, colcon build, slow regressions
 test: venv lint
 	$(VENV)/bin/pytest -q -ra --durations=15 --timeout=900 $(PYTEST_ARGS)
+
+# unit tests only: no rclpy context, DDS, colcon or test over ~5 s (markers in setup.cfg)
+test-fast: venv
+	$(VENV)/bin/pytest -q -ra --durations=10 --timeout=300 -m "not ros and not slow" $(PYTEST_ARGS)
 
 # simulate a drive, detect lanes, score them, draw out/demo/demo.png (see README)
 demo: venv

@@ -12,6 +12,9 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
+from rosbags.highlevel import AnyReader
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+
 from fhld_ros.errors import CliError
 from msg_adapters.family import RosbagsFamily, rosbags_family
 
@@ -22,8 +25,6 @@ class BagError(CliError, ValueError):
 
 def _open_reader(path: str | Path) -> Any:
     """A rosbags reader: rosbag2 for a bag directory (whatever its name), else AnyReader."""
-    from rosbags.highlevel import AnyReader
-    from rosbags.rosbag2 import Reader
     path = Path(path)
     if not path.exists():
         raise BagError(f'bag {path} does not exist')
@@ -114,7 +115,6 @@ class BagWriter:
         self._connections: dict[str, Any] = {}
 
     def __enter__(self) -> BagWriter:
-        from rosbags.rosbag2 import StoragePlugin, Writer
         if self.path.exists() and not self.overwrite:
             raise BagError(f'{self.path} exists')
         parent = self.path.resolve().parent

@@ -27,7 +27,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     'train': ('fhld_ros.training.train', 'train the FHLD detector on cached simulator windows'),
 }
 
-__all__ = ['COMMANDS', 'CliError', 'build_parser', 'main']
+__all__ = ['COMMANDS', 'build_parser', 'main']
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:

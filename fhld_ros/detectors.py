@@ -1,57 +1,115 @@
-"""Detector back-ends behind one call: BevWindow -> (lanes in window frame, confidences)."""
+"""Detector back-ends behind one call: BevWindow -> (lanes in window frame, confidences).
+
+The FHLD model is loaded here and nowhere else (checkpoint default, threads, device, errors as
+CliError), for the node, `fhld replay`, `fhld demo` and `fhld testset`.
+"""
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
+import torch
 
+from fhld_ros.classical import ClassicalLaneDetector
 from fhld_ros.errors import CliError
+from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT, CheckpointError, load_checkpoint
+from fhld_ros.model.config import FhldConfig
+from fhld_ros.model.detector import Detections, FhldDetector
+from fhld_ros.model.heights import refine_lane_heights
+from fhld_ros.model.inference import serving_features
 from fhld_ros.rolling_grid import BevWindow
 from fhld_ros.ros.parameters import DetectorParams
 
 Detector = Callable[[BevWindow], tuple[list[np.ndarray], np.ndarray]]
+# the FHLD readings of one detection that `fhld testset` scores side by side
+FHLD_VARIANTS = ('fhld', 'fhld-model-z', 'fhld-global')
+CURVE_POINTS = 200  # samples per global curve for 'fhld-global'
 
 
 def classical_detector() -> Detector:
     """The rule-based baseline on the accumulated window points."""
-    from fhld_ros.classical import ClassicalLaneDetector
     baseline = ClassicalLaneDetector()
     return lambda window: baseline.detect(window.points_window, window.intensity)
 
 
-def fhld_detector(params: DetectorParams) -> Detector:
-    """The FHLD model from params.checkpoint (default: the shipped weights)."""
-    import torch
+def checkpoint_path(params: DetectorParams) -> Path:
+    """params.checkpoint, or the shipped weights when empty; CliError when it is no file."""
+    path = Path(params.checkpoint or DEFAULT_CHECKPOINT)
+    if not path.is_file():
+        raise CliError(f'checkpoint not found: {path}')
+    return path
 
-    from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT, CheckpointError, load_checkpoint
-    from fhld_ros.model.config import FhldConfig
-    from fhld_ros.model.inference import serving_features
-    path = params.checkpoint or DEFAULT_CHECKPOINT
+
+def load_fhld_model(params: DetectorParams) -> FhldDetector:
+    """The FHLD model from params.checkpoint on params.device, in eval mode."""
     # torch runs the post-processing (and TorchScript): small ops, fastest on one thread here
     torch.set_num_threads(params.model_threads if params.model_threads > 0 else 1)
     if params.device == 'cuda' and not torch.cuda.is_available():
         raise CliError("device 'cuda' was asked for but torch sees no CUDA device")
     expect = FhldConfig(size_px=params.size_px, resolution_m=params.resolution_m)
     try:
-        loaded = load_checkpoint(path, expect=expect, map_location=params.device)
+        loaded = load_checkpoint(checkpoint_path(params), expect=expect,
+                                 map_location=params.device)
     except CheckpointError as exc:
         raise CliError(str(exc)) from exc
-    model = loaded.model.to(params.device).eval()
-    try:
-        features = serving_features(model, params.device, params.model_runtime,
-                                    params.model_threads)
-    except ValueError as exc:
-        raise CliError(str(exc)) from exc
-    cfg = model.cfg  # build the graph now, not on the first sweep (export/trace takes ~2 s)
-    features(torch.zeros(1, cfg.in_channels, cfg.size_px, cfg.size_px, device=params.device))
+    return loaded.model.to(params.device).eval()
+
+
+def fhld_detections(params: DetectorParams, eager: bool = False,
+                    curve_points: int = 0) -> Callable[[BevWindow], Detections]:
+    """BevWindow -> the model's Detections (lanes, confidences, curve_points-sampled curves).
+
+    The backbone runs as the node serves it (serving_features: ONNX Runtime or TorchScript,
+    params.model_runtime) unless eager, which runs the torch module itself: the two agree to
+    float rounding only, and the published test-set table is the eager model's.
+    """
+    model = load_fhld_model(params)
+    features = None
+    if not eager:
+        try:
+            features = serving_features(model, params.device, params.model_runtime,
+                                        params.model_threads)
+        except ValueError as exc:
+            raise CliError(str(exc)) from exc
+        cfg = model.cfg  # build the graph now, not on the first sweep (export/trace takes ~2 s)
+        features(torch.zeros(1, cfg.in_channels, cfg.size_px, cfg.size_px, device=params.device))
+
+    def detect(window: BevWindow) -> Detections:
+        raster = torch.from_numpy(window.raster).unsqueeze(0).to(params.device)
+        return model.detect(raster, score_threshold=params.score_threshold,
+                            curve_points=curve_points, refine_heights=params.refine_heights,
+                            refine_steps=params.local_refine_steps,
+                            features=None if features is None else features(raster))[0]
+    return detect
+
+
+def fhld_detector(params: DetectorParams) -> Detector:
+    """The FHLD model from params.checkpoint (default: the shipped weights), as served."""
+    detections = fhld_detections(params)
 
     def detect(window: BevWindow) -> tuple[list[np.ndarray], np.ndarray]:
-        raster = torch.from_numpy(window.raster).unsqueeze(0).to(params.device)
-        found = model.detect(raster, score_threshold=params.score_threshold,
-                             refine_heights=params.refine_heights,
-                             refine_steps=params.local_refine_steps,
-                             features=features(raster))[0]
+        found = detections(window)
         return found.lanes, found.confidences
+    return detect
+
+
+def fhld_variants(params: DetectorParams,
+                  eager: bool = True) -> Callable[[BevWindow], dict[str, list[np.ndarray]]]:
+    """BevWindow -> {FHLD_VARIANTS name: lanes}, all from ONE model.detect call.
+
+    'fhld' the final lanes (heights refined from the measured surface), 'fhld-model-z' the
+    same lanes with the local branch's own heights, 'fhld-global' the global curves alone.
+    params.refine_heights is ignored: both kinds of heights are returned.
+    """
+    detections = fhld_detections(dataclasses.replace(params, refine_heights=False), eager=eager,
+                                 curve_points=CURVE_POINTS)
+
+    def detect(window: BevWindow) -> dict[str, list[np.ndarray]]:
+        found = detections(window)
+        refined = refine_lane_heights(found.lanes, window.raster, window.spec.resolution_m)
+        return {'fhld': refined, 'fhld-model-z': found.lanes, 'fhld-global': found.curves}
     return detect
 
 

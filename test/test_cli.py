@@ -5,6 +5,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from fhld_ros.cli import COMMANDS
 
 
@@ -31,6 +33,7 @@ def test_help_imports_no_subcommand_module():
     assert result.stdout.strip().splitlines()[-1] == '[]'
 
 
+@pytest.mark.slow  # one interpreter per subcommand, most of them importing torch
 def test_every_subcommand_builds_its_own_parser():
     for name in COMMANDS:
         result = _fhld(name, '--help')

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from rosbags.rosbag2 import StoragePlugin, Writer
 
 from fhld_ros.bagio import BagWriter
 from fhld_ros.cli import main
@@ -191,7 +192,6 @@ def test_empty_bag_and_topic_without_messages(tmp_path: Path, gt_bag: Path,
     with BagWriter(tmp_path / 'empty'):
         pass
     assert 'it has: nothing' in run_error(capsys, str(tmp_path / 'empty'), str(gt_bag))
-    from rosbags.rosbag2 import StoragePlugin, Writer
     writer = Writer(tmp_path / 'silent', version=9, storage_plugin=StoragePlugin.MCAP)
     writer.open()
     writer.add_connection('/lanes', MARKERS, typestore=BagWriter(tmp_path / 'x').family.typestore)

@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from rclpy.serialization import serialize_message
 
+from fhld_ros.commands.bench_e2e import marker_array_stamp_ns
 from msg_adapters.family import rclpy_family, rosbags_family
 from msg_adapters.lanes import (
     DELETEALL,
@@ -70,9 +72,6 @@ def test_path_follows_the_lane_with_headings(family):
 
 
 def test_bench_reads_the_stamp_of_a_serialised_marker_array():
-    from rclpy.serialization import serialize_message
-
-    from fhld_ros.commands.bench_e2e import marker_array_stamp_ns
     family = rclpy_family()
     stamp = 1_700_000_123_456_789_012
     msg = lanes_to_marker_array(family, family.header(stamp, 'odom'), _lanes(), [0.9, 0.8],

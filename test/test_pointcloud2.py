@@ -7,7 +7,11 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
 
+import msg_adapters.pointcloud2 as pc2
+from fhld_ros.bagio import BagWriter
 from msg_adapters.family import rclpy_family, rosbags_family
 from msg_adapters.pointcloud2 import (
     DATATYPES,
@@ -98,7 +102,6 @@ def test_reflectivity_is_used_when_intensity_is_absent(itype):
 
 
 def test_no_intensity_field_gives_zeros_and_warns_once(caplog):
-    import msg_adapters.pointcloud2 as pc2
     pc2._warned_no_intensity = False
     dtype = np.dtype([('x', '<f4'), ('y', '<f4'), ('z', '<f4')])
     points = np.ones(5, dtype=dtype)
@@ -210,10 +213,6 @@ def test_random_layouts_round_trip(layout):
 
 
 def test_rclpy_rosbags_and_mcap_ros2_messages_decode_identically(tmp_path):
-    from mcap.reader import make_reader
-    from mcap_ros2.decoder import DecoderFactory
-
-    from fhld_ros.bagio import BagWriter
     points = _xyzi_points(64 * 16, intensity='reflectivity', itype='<u2', itemsize=48)
     points['x'][::7] = np.nan
     rclpy_msg = _cloud(rclpy_family(), points, height=64)

@@ -5,9 +5,11 @@ import numpy as np
 import pytest
 import torch
 
+from fhld_ros.detectors import CURVE_POINTS, fhld_variants
 from fhld_ros.evaluation import metrics
 from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint
 from fhld_ros.model.config import FhldConfig
+from fhld_ros.ros.parameters import DetectorParams
 from fhld_ros.sim.simulator import Simulator
 from fhld_ros.training.cache import TEST_SEED_BASE, CacheSettings, scenario_for_seed
 from fhld_ros.training.samples import training_samples
@@ -25,7 +27,7 @@ def windows():
     samples = []
     for seed in SEEDS:
         sim = Simulator(seed, sweeps=settings.sweeps_per_seed, **scenario_for_seed(seed, settings))
-        samples.extend(training_samples(sim, 1))
+        samples.extend(training_samples(sim, 1, keep_window=True))
     return samples
 
 
@@ -36,6 +38,7 @@ def test_shipped_checkpoint_loads_safely_with_its_provenance():
     assert loaded.code_version
 
 
+@pytest.mark.slow  # simulating the four windows takes most of it
 def test_shipped_checkpoint_detects_lanes(windows, one_torch_thread):
     model = load_checkpoint(DEFAULT_CHECKPOINT).model.eval()
     counts = metrics.PointCounts()
@@ -48,3 +51,21 @@ def test_shipped_checkpoint_detects_lanes(windows, one_torch_thread):
     assert scores['F1@30'] >= MIN_F1_30, scores
     assert scores['F1@10'] >= MIN_F1_10, scores
     assert np.isfinite(list(scores.values())).all()
+
+
+@pytest.mark.slow
+def test_one_detection_gives_every_testset_variant(windows, one_torch_thread):
+    """`fhld testset`'s FHLD rows: one eager detect() per window, read three ways."""
+    model = load_checkpoint(DEFAULT_CHECKPOINT).model.eval()
+    variants = fhld_variants(DetectorParams(model_threads=1))
+    for sample in windows:
+        found = variants(sample.window)
+        raster = torch.from_numpy(sample.raster).unsqueeze(0)
+        for name, refine in (('fhld', True), ('fhld-model-z', False)):
+            lanes = model.detect(raster, refine_heights=refine)[0].lanes
+            assert len(found[name]) == len(lanes)
+            for got, want in zip(found[name], lanes):
+                np.testing.assert_array_equal(got, want)
+        assert len(found['fhld-global']) >= len(found['fhld'])
+        assert all(curve.shape == (CURVE_POINTS, 3) for curve in found['fhld-global'])
+    assert any(len(variants(sample.window)['fhld']) for sample in windows)

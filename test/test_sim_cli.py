@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
 
 from fhld_ros.bagio import bag_topics, read_messages
 from fhld_ros.cli import main
@@ -55,9 +57,6 @@ def test_bag_reads_back_with_rosbags(bag: tuple[Path, Path]) -> None:
 
 
 def test_bag_reads_back_with_mcap_ros2(bag: tuple[Path, Path]) -> None:
-    from mcap.reader import make_reader
-    from mcap_ros2.decoder import DecoderFactory
-
     (mcap_file,) = bag[0].glob('*.mcap')
     counts: Counter = Counter()
     with mcap_file.open('rb') as f:

@@ -5,9 +5,12 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from fhld_ros.training.cache import TEST_SEED_BASE, scenario_for_seed
 
 
+@pytest.mark.slow
 def test_testset_scores_every_detector_overall_and_per_sensor():
     run = subprocess.run(
         [sys.executable, '-m', 'fhld_ros.cli', 'testset', '--seeds', '2',

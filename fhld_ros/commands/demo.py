@@ -14,7 +14,16 @@ from pathlib import Path
 
 import numpy as np
 
+from fhld_ros.bagio import read_messages
+from fhld_ros.cli import main as fhld
+from fhld_ros.commands.replay import replay
 from fhld_ros.errors import CliError
+from fhld_ros.evaluation.evaluate import Frame, draw_top_view, evaluate_bags, summary
+from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT
+from fhld_ros.pipeline import LanePipeline
+from fhld_ros.rolling_grid import BevWindow
+from fhld_ros.ros.parameters import DetectorParams
+from msg_adapters.family import stamp_to_ns
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -24,11 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--detector', choices=['fhld', 'classical'], default='fhld')
 
 
-def _window_at(bag: Path, stamp_ns: int, params) -> object:
+def _window_at(bag: Path, stamp_ns: int, params: DetectorParams) -> BevWindow:
     """The BEV window the pipeline saw when its newest sweep had stamp_ns."""
-    from fhld_ros.bagio import read_messages
-    from fhld_ros.pipeline import LanePipeline
-    from msg_adapters.family import stamp_to_ns
     pipeline = LanePipeline(params, detector=lambda window: ([], np.zeros(0)))
     for topic, _, msg in read_messages(bag, ['/points', '/odom']):
         if topic == '/odom':
@@ -40,20 +46,13 @@ def _window_at(bag: Path, stamp_ns: int, params) -> object:
     return pipeline.take_window()
 
 
-def draw(frame, window, path: Path, title: str) -> None:
+def draw(frame: Frame, window: BevWindow, path: Path, title: str) -> None:
     """BEV mean intensity with GT (green) and predicted (red) lanes, forward up."""
-    from fhld_ros.evaluation.evaluate import draw_top_view
     draw_top_view(path, frame.gt, frame.pred, window.spec.length_m / 2, title,
                   background=window.raster[0])
 
 
 def run(args: argparse.Namespace) -> int:
-    from fhld_ros.cli import main as fhld
-    from fhld_ros.commands.replay import replay
-    from fhld_ros.evaluation.evaluate import evaluate_bags, summary
-    from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT
-    from fhld_ros.ros.parameters import DetectorParams
-
     if not 1 <= args.sweeps <= 1000:
         raise CliError(f'--sweeps must be in 1..1000, got {args.sweeps}')
     out = args.out

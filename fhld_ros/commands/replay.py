@@ -10,7 +10,15 @@ import dataclasses
 import sys
 from pathlib import Path
 
+from tqdm import tqdm
+
+from fhld_ros.bagio import BagWriter, read_messages, topic_counts
+from fhld_ros.detectors import make_detector
 from fhld_ros.errors import CliError
+from fhld_ros.pipeline import LanePipeline
+from fhld_ros.ros.parameters import DetectorParams, load_params_yaml
+from msg_adapters.family import stamp_to_ns
+from msg_adapters.lanes import lane_to_path, lanes_to_marker_array
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -26,17 +34,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--quiet', action='store_true', help='no progress bar')
 
 
-def replay(in_bag: Path, out_bag: Path, params, points_topic: str = '/points',
+def replay(in_bag: Path, out_bag: Path, params: DetectorParams, points_topic: str = '/points',
            odom_topic: str = '/odom', progress: bool = True) -> dict[str, int]:
     """Run the pipeline over in_bag and write its outputs to out_bag; returns counters."""
-    from tqdm import tqdm
-
-    from fhld_ros.bagio import BagWriter, read_messages, topic_counts
-    from fhld_ros.detectors import make_detector
-    from fhld_ros.pipeline import LanePipeline
-    from msg_adapters.family import stamp_to_ns
-    from msg_adapters.lanes import lane_to_path, lanes_to_marker_array
-
     counts = topic_counts(in_bag)
     if points_topic not in counts:
         raise CliError(f'bag {in_bag} has no topic {points_topic} (it has: '
@@ -92,7 +92,6 @@ def replay(in_bag: Path, out_bag: Path, params, points_topic: str = '/points',
 
 
 def run(args: argparse.Namespace) -> int:
-    from fhld_ros.ros.parameters import DetectorParams, load_params_yaml
     params = load_params_yaml(args.params) if args.params else DetectorParams()
     overrides = {k: v for k, v in (('detector', args.detector),
                                    ('checkpoint', args.checkpoint)) if v}

@@ -18,9 +18,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from matplotlib.figure import Figure
 
-from fhld_ros.cli import CliError
+from fhld_ros.bagio import BagError, bag_topics, read_messages
+from fhld_ros.errors import CliError
 from fhld_ros.evaluation import metrics
+from msg_adapters.lanes import marker_array_to_lanes
 
 MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
 GT_LEAD_NS = 1_000_000_000  # a /lanes message may precede the first /lanes_gt by this much
@@ -81,9 +84,6 @@ def window_frame(outline: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
 
 def _read_lanesets(path: str, topic: str, role: str) -> list[Any]:
     """LaneSets of every message on `topic`; CliError for unreadable bags or missing topics."""
-    from fhld_ros.bagio import BagError, bag_topics, read_messages
-    from msg_adapters.lanes import marker_array_to_lanes
-
     try:
         topics = bag_topics(path)
         if topic not in topics:
@@ -213,11 +213,8 @@ def draw_top_view(path: Path, gt: Sequence[np.ndarray], pred: Sequence[np.ndarra
                   half: float, title: str, background: np.ndarray | None = None) -> None:
     """A PNG of window-frame lanes seen from above, forward up and left to the left: GT (green,
     wide) under predictions (red), the ego, and the window outline or a (H, W) raster behind."""
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 7))
+    fig = Figure(figsize=(7, 7))  # no pyplot: no GUI backend, no global figure registry
+    ax = fig.subplots()
     if background is None:
         ax.plot([-half, half, half, -half, -half], [-half, -half, half, half, -half],
                 color='0.6', lw=1)
@@ -239,7 +236,6 @@ def draw_top_view(path: Path, gt: Sequence[np.ndarray], pred: Sequence[np.ndarra
     ax.set_title(title, fontsize=9)
     ax.legend(loc='lower right', fontsize=8, framealpha=0.9)
     fig.savefig(path, dpi=110, bbox_inches='tight')
-    plt.close(fig)
 
 
 def plot_worst(frames: list[Frame], out_dir: str, n: int) -> list[Path]:

@@ -11,6 +11,9 @@ cover every sensor preset x topology pair. Each window goes through the node's o
 * `fhld-model-z` the same lanes with the local branch's own heights (no refinement)
 * `fhld-global` the same model's global curves alone (the paper's "without local branch" row)
 
+The three FHLD rows are one eager-torch detection per window (detectors.fhld_variants); the
+node serves the same weights through ONNX Runtime/TorchScript, equal to float rounding.
+
 Scores: the FHLD point metric and the ONCE-3DLanes lane metric, counts summed over windows;
 the point metric's F1 also per sensor preset and per topology setting.
 """
@@ -25,13 +28,25 @@ from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
+from fhld_ros.detectors import (
+    FHLD_VARIANTS,
+    classical_detector,
+    fhld_variants,
+    load_fhld_model,
+)
 from fhld_ros.errors import CliError
+from fhld_ros.evaluation import metrics
+from fhld_ros.rolling_grid import BevWindow
+from fhld_ros.ros.parameters import DetectorParams
+from fhld_ros.sim.simulator import Simulator
+from fhld_ros.training.cache import TEST_SEED_BASE, CacheSettings, scenario_for_seed
+from fhld_ros.training.samples import training_samples
 
-DETECTORS = ('classical', 'fhld', 'fhld-model-z', 'fhld-global')
+DETECTORS = ('classical', *FHLD_VARIANTS)
 SEEDS = 56
 WINDOWS_PER_SEED = 4
-CURVE_POINTS = 200
 
 _worker: dict = {}
 
@@ -46,42 +61,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--json', action='store_true', help='print one JSON object last')
 
 
-def _init(detectors: list[str], checkpoint: str | None, threshold: float) -> None:
-    import torch
-    torch.set_num_threads(1)
-    _worker.update(detectors=detectors, threshold=threshold)
+def _init(detectors: list[str], params: DetectorParams) -> None:
+    """Worker set-up: the detectors once per process (the eager model, one torch thread)."""
+    _worker['detectors'] = detectors
     if 'classical' in detectors:
-        from fhld_ros.classical import ClassicalLaneDetector
-        _worker['classical'] = ClassicalLaneDetector()
-    if {'fhld', 'fhld-model-z', 'fhld-global'} & set(detectors):
-        from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint
-        _worker['model'] = load_checkpoint(checkpoint or DEFAULT_CHECKPOINT).model.eval()
+        _worker['classical'] = classical_detector()
+    if set(FHLD_VARIANTS) & set(detectors):
+        _worker['fhld'] = fhld_variants(params, eager=True)
 
 
-def _detect(window) -> dict[str, list[np.ndarray]]:
-    import torch
-
-    from fhld_ros.model.heights import refine_lane_heights
+def _detect(window: BevWindow) -> dict[str, list[np.ndarray]]:
     found: dict[str, list[np.ndarray]] = {}
     if 'classical' in _worker:
-        found['classical'] = _worker['classical'].detect(window.points_window,
-                                                         window.intensity)[0]
-    if 'model' in _worker:
-        raster = torch.from_numpy(window.raster).unsqueeze(0)
-        det = _worker['model'].detect(raster, score_threshold=_worker['threshold'],
-                                      curve_points=CURVE_POINTS, refine_heights=False)[0]
-        found['fhld-model-z'], found['fhld-global'] = det.lanes, det.curves
-        found['fhld'] = refine_lane_heights(det.lanes, window.raster, window.spec.resolution_m)
+        found['classical'] = _worker['classical'](window)[0]
+    if 'fhld' in _worker:
+        found.update(_worker['fhld'](window))
     return {name: found[name] for name in _worker['detectors']}
 
 
 def evaluate_seed(seed: int, windows: int) -> dict:
     """Counts per detector for one test seed (runs in a worker process)."""
-    from fhld_ros.evaluation import metrics
-    from fhld_ros.sim.simulator import Simulator
-    from fhld_ros.training.cache import CacheSettings, scenario_for_seed
-    from fhld_ros.training.samples import training_samples
-
     settings = CacheSettings(windows_per_seed=windows)
     scenario = scenario_for_seed(seed, settings)
     sim = Simulator(seed, sweeps=settings.sweeps_per_seed, **scenario)
@@ -100,18 +99,14 @@ def evaluate_seed(seed: int, windows: int) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT
-    from fhld_ros.training.cache import TEST_SEED_BASE
-
     if args.seeds < 1 or args.windows_per_seed < 1 or args.workers < 1:
         raise CliError('--seeds, --windows-per-seed and --workers must be >= 1')
-    wants_model = {'fhld', 'fhld-model-z', 'fhld-global'} & set(args.detectors)
-    checkpoint = args.checkpoint or DEFAULT_CHECKPOINT
-    if wants_model and not Path(checkpoint).is_file():
-        raise CliError(f'checkpoint not found: {checkpoint}')
+    params = DetectorParams(checkpoint=str(args.checkpoint or ''), model_threads=1,
+                            score_threshold=args.score_threshold)
+    if set(FHLD_VARIANTS) & set(args.detectors):
+        load_fhld_model(params)  # an unusable checkpoint fails here, not in every worker
     seeds = list(range(TEST_SEED_BASE, TEST_SEED_BASE + args.seeds))
-    init = (args.detectors, str(checkpoint) if wants_model else None, args.score_threshold)
-    from tqdm import tqdm
+    init = (args.detectors, params)
     start = time.monotonic()
     with ProcessPoolExecutor(args.workers, mp_context=get_context('spawn'), initializer=_init,
                              initargs=init) as pool:
@@ -127,7 +122,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 def summarise(results: list[dict], detectors: list[str]) -> dict:
-    from fhld_ros.evaluation import metrics
     report: dict = {'windows': sum(r['windows'] for r in results), 'seeds': len(results),
                     'sensors': sorted({r['scenario']['sensor'] for r in results}),
                     'topologies': sorted({str(r['scenario']['topology']) for r in results}),
@@ -145,7 +139,6 @@ def summarise(results: list[dict], detectors: list[str]) -> dict:
 
 def _point_f1_by(results: list[dict], detectors: list[str], key: str) -> dict:
     """{scenario value: {'windows': n, detector: {'F1@10': .., 'F1@30': ..}}}."""
-    from fhld_ros.evaluation import metrics
     groups: dict[str, list[dict]] = {}
     for r in results:
         groups.setdefault(str(r['scenario'][key]), []).append(r)

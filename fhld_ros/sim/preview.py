@@ -2,13 +2,14 @@
 
 Points are accumulated in the odom frame with the reported /odom poses (what a consumer of
 the bag would see), keeping returns near the road surface and within PREVIEW_RANGE_M of the
-sensor; each pixel shows the brightest return. Rendered with matplotlib's Agg backend.
+sensor; each pixel shows the brightest return.
 """
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
+from matplotlib.figure import Figure
 
 PREVIEW_RANGE_M = 40.0
 MAX_PIXELS = 2400  # longest image side
@@ -39,14 +40,12 @@ class BevPreview:
 
     def save(self, path: str | Path, lanes: list[np.ndarray], ego_xy: np.ndarray,
              title: str) -> None:
-        import matplotlib
-        matplotlib.use('Agg')
-        import matplotlib.pyplot as plt
-
         h, w = self.shape
         scale = 12.0 / max(h, w)
-        fig, ax = plt.subplots(figsize=(max(w * scale, 4.0), max(h * scale, 4.0) + 0.6),
-                               dpi=max(100, int(max(h, w) / 12.0)))
+        # no pyplot: no GUI backend, no global figure registry
+        fig = Figure(figsize=(max(w * scale, 4.0), max(h * scale, 4.0) + 0.6),
+                     dpi=max(100, int(max(h, w) / 12.0)))
+        ax = fig.subplots()
         extent = (self.lo[0], self.lo[0] + w * self.res, self.lo[1], self.lo[1] + h * self.res)
         # gamma lifts the dim asphalt so the road texture is visible next to bright paint
         ax.imshow(np.sqrt(self.image), origin='lower', extent=extent, cmap='gray', vmin=0,
@@ -66,4 +65,3 @@ class BevPreview:
         ax.legend(loc='upper right', fontsize=7, framealpha=0.6)
         fig.tight_layout()
         fig.savefig(path)
-        plt.close(fig)

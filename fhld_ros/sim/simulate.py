@@ -10,16 +10,25 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
+from tqdm import tqdm
+
+from fhld_ros.bagio import BagWriter
+from fhld_ros.bev import normalize_intensity
+from fhld_ros.errors import CliError
+from fhld_ros.sim.layout import ROAD_CLASSES, TOPOLOGIES
+from fhld_ros.sim.lidar import DEFAULT_SENSOR, INTENSITY_SCALES, LAYOUTS, SENSORS
+from fhld_ros.sim.preview import BevPreview
+from fhld_ros.sim.simulator import MAX_SWEEPS, Simulator
+from msg_adapters.lanes import lanes_to_marker_array
+from msg_adapters.odometry import make_odometry
+from msg_adapters.pointcloud2 import create_cloud
+
 GT_RADIUS_M = 80.0
 GT_EVERY = 10  # sweeps between /lanes_gt messages
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    # numpy-only imports (scipy and matplotlib load lazily): `fhld --help` stays fast
-    from fhld_ros.sim.layout import ROAD_CLASSES, TOPOLOGIES
-    from fhld_ros.sim.lidar import DEFAULT_SENSOR, INTENSITY_SCALES, LAYOUTS, SENSORS
-    from fhld_ros.sim.simulator import MAX_SWEEPS
-
     parser.add_argument('out_bag', metavar='OUT_BAG', help='bag directory to write')
     parser.add_argument('--seed', type=int, default=0, help='scene seed (default 0)')
     parser.add_argument('--sweeps', type=int, default=100,
@@ -52,9 +61,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _check(args: argparse.Namespace) -> None:
-    from fhld_ros.cli import CliError
-    from fhld_ros.sim.simulator import MAX_SWEEPS
-
     out = Path(args.out_bag)
     if out.exists() and not args.overwrite:
         raise CliError(f'{out} exists (use --overwrite to replace it)')
@@ -83,16 +89,6 @@ def _check(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import numpy as np
-    from tqdm import tqdm
-
-    from fhld_ros.bagio import BagWriter
-    from fhld_ros.cli import CliError
-    from fhld_ros.sim.simulator import Simulator
-    from msg_adapters.lanes import lanes_to_marker_array
-    from msg_adapters.odometry import make_odometry
-    from msg_adapters.pointcloud2 import create_cloud
-
     _check(args)
     try:
         sim = Simulator(args.seed, args.sweeps, args.sensor, columns=args.columns,
@@ -105,8 +101,6 @@ def run(args: argparse.Namespace) -> int:
     sim.frame_id = args.frame_id
     preview = None
     if args.preview:
-        from fhld_ros.bev import normalize_intensity
-        from fhld_ros.sim.preview import BevPreview
         preview = BevPreview(sim.odom_poses[:, :2, 3], sim.mount.z)
 
     with BagWriter(args.out_bag, overwrite=args.overwrite) as bag:
