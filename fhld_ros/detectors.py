@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -34,14 +33,6 @@ def classical_detector() -> Detector:
     return lambda window: baseline.detect(window.points_window, window.intensity)
 
 
-def checkpoint_path(params: DetectorParams) -> Path:
-    """params.checkpoint, or the shipped weights when empty; CliError when it is no file."""
-    path = Path(params.checkpoint or DEFAULT_CHECKPOINT)
-    if not path.is_file():
-        raise CliError(f'checkpoint not found: {path}')
-    return path
-
-
 def load_fhld_model(params: DetectorParams) -> FhldDetector:
     """The FHLD model from params.checkpoint on params.device, in eval mode."""
     # torch runs the post-processing (and TorchScript): small ops, fastest on one thread here
@@ -50,7 +41,7 @@ def load_fhld_model(params: DetectorParams) -> FhldDetector:
         raise CliError("device 'cuda' was asked for but torch sees no CUDA device")
     expect = FhldConfig(size_px=params.size_px, resolution_m=params.resolution_m)
     try:
-        loaded = load_checkpoint(checkpoint_path(params), expect=expect,
+        loaded = load_checkpoint(params.checkpoint or DEFAULT_CHECKPOINT, expect=expect,
                                  map_location=params.device)
     except CheckpointError as exc:
         raise CliError(str(exc)) from exc

@@ -6,6 +6,7 @@ id stable per lane, colour alpha = confidence, text `conf=0.93`), and one LINE_S
 """
 from __future__ import annotations
 
+import struct
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -131,3 +132,14 @@ def lane_to_path(family: MessageFamily, header: Any, lane: np.ndarray | None) ->
             orientation=family.new('geometry_msgs/msg/Quaternion', z=qz, w=qw))
         poses.append(family.new('geometry_msgs/msg/PoseStamped', header=header, pose=pose))
     return family.new('nav_msgs/msg/Path', header=header, poses=poses)
+
+
+def marker_array_stamp_ns(raw: bytes) -> int:
+    """Header stamp of the first marker of a CDR-serialised MarkerArray, without decoding it."""
+    if len(raw) < 8 or raw[1] not in (0, 1):
+        raise ValueError('not a CDR-serialised MarkerArray')
+    order = '<' if raw[1] == 1 else '>'  # encapsulation: CDR little / big endian
+    if struct.unpack_from(f'{order}I', raw, 4)[0] == 0 or len(raw) < 16:
+        raise ValueError('MarkerArray without markers')
+    sec, nanosec = struct.unpack_from(f'{order}iI', raw, 8)
+    return sec * 1_000_000_000 + nanosec

@@ -5,13 +5,13 @@ import numpy as np
 import pytest
 from rclpy.serialization import serialize_message
 
-from fhld_ros.commands.bench_e2e import marker_array_stamp_ns
 from msg_adapters.family import rclpy_family, rosbags_family
 from msg_adapters.lanes import (
     DELETEALL,
     LINE_STRIP,
     lane_to_path,
     lanes_to_marker_array,
+    marker_array_stamp_ns,
     marker_array_to_lanes,
 )
 

@@ -15,7 +15,7 @@ from fhld_ros.training.cache import TEST_SEED_BASE, CacheSettings, scenario_for_
 from fhld_ros.training.samples import training_samples
 
 # Held-out seeds (never trained on); thresholds sit a margin below what the shipped weights
-# score on these windows (README: accuracy table) so a regression fails the test.
+# score on these windows (docs/accuracy.md) so a regression fails the test.
 SEEDS = [TEST_SEED_BASE + k for k in (1, 5, 10, 14)]
 MIN_F1_30 = 80.0  # shipped weights: 85.1 on these 4 windows (224-window test set: 96.3)
 MIN_F1_10 = 68.0  # shipped weights: 73.5 (test set: 88.1)

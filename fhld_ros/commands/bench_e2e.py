@@ -11,7 +11,6 @@ from its /diagnostics) say where the time goes.
 from __future__ import annotations
 
 import os
-import struct
 import subprocess
 import sys
 import threading
@@ -25,6 +24,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from fhld_ros.ros.env import loopback_dds_env
 from fhld_ros.sim.simulator import Simulator, Sweep
 from msg_adapters.family import rclpy_family
+from msg_adapters.lanes import marker_array_stamp_ns
 from msg_adapters.odometry import make_odometry
 from msg_adapters.pointcloud2 import create_cloud
 
@@ -40,17 +40,6 @@ NODE_START_TIMEOUT_SEC = 60.0
 def _sweeps(count: int) -> list[Sweep]:
     sim = Simulator(seed=5, sweeps=count, sensor='os1-64', road='highway', speed=20.0)
     return [sim.sweep(k) for k in range(count)]
-
-
-def marker_array_stamp_ns(raw: bytes) -> int:
-    """Header stamp of the first marker of a CDR-serialised MarkerArray, without decoding it."""
-    if len(raw) < 8 or raw[1] not in (0, 1):
-        raise ValueError('not a CDR-serialised MarkerArray')
-    order = '<' if raw[1] == 1 else '>'  # encapsulation: CDR little / big endian
-    if struct.unpack_from(f'{order}I', raw, 4)[0] == 0 or len(raw) < 16:
-        raise ValueError('MarkerArray without markers')
-    sec, nanosec = struct.unpack_from(f'{order}iI', raw, 8)
-    return sec * 1_000_000_000 + nanosec
 
 
 class _BenchClient:
