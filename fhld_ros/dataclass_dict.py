@@ -46,6 +46,11 @@ def to_plain(value: Any) -> Any:
     return value
 
 
+def documented(default: Any, doc: str) -> Any:
+    """A dataclass field with a default and its one description (metadata 'doc')."""
+    return dataclasses.field(default=default, metadata={'doc': doc})
+
+
 def field_docs(cls: type) -> dict[str, str]:
     """Field name -> its metadata 'doc' ('' when a field has none)."""
     return {f.name: f.metadata.get('doc', '') for f in dataclasses.fields(cls)}

@@ -17,6 +17,7 @@ from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from ros_helpers import wait_until
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
@@ -35,15 +36,6 @@ pytestmark = pytest.mark.ros
 SWEEPS = 6
 START_NS = 1_700_000_000_000_000_000
 RELIABLE = QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE)
-
-
-def _wait(predicate, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.05)
-    return predicate()
 
 
 class Probe:
@@ -123,10 +115,10 @@ def _publish(probe: Probe, sweeps) -> list[int]:
 def test_node_detects_lanes_and_reports_diagnostics(running, sweeps, one_torch_thread):
     node, probe = running(model_threads=1)
     assert node.params == DetectorParams(model_threads=1)
-    assert _wait(lambda: probe.points.get_subscription_count() > 0
+    assert wait_until(lambda: probe.points.get_subscription_count() > 0
                  and probe.odom.get_subscription_count() > 0, 10)
     stamps = _publish(probe, sweeps)
-    assert _wait(lambda: int(probe.diagnostic_values().get('clouds', 0)) == SWEEPS
+    assert wait_until(lambda: int(probe.diagnostic_values().get('clouds', 0)) == SWEEPS
                  and probe.lanes and stamps[-1] in {
                      marker_array_to_lanes(m).stamp_ns for m in probe.lanes}, 30), (
         probe.diagnostic_values(), len(probe.lanes))
@@ -138,9 +130,9 @@ def test_node_detects_lanes_and_reports_diagnostics(running, sweeps, one_torch_t
         assert all(m.header.frame_id == 'odom' for m in msg.markers)
         assert marker_array_to_lanes(msg).stamp_ns in stamps
     assert max(len(marker_array_to_lanes(m).lanes) for m in probe.lanes) >= 2
-    assert _wait(lambda: len(probe.left) == len(probe.right) == len(probe.lanes), 5)
+    assert wait_until(lambda: len(probe.left) == len(probe.right) == len(probe.lanes), 5)
 
-    assert _wait(lambda: 'latency_ms_p50' in probe.diagnostic_values(), 5)
+    assert wait_until(lambda: 'latency_ms_p50' in probe.diagnostic_values(), 5)
     status = probe.diagnostics[-1].status[0]
     assert (status.name, status.level, status.message) == (
         'fhld_ros: lane_detector', DiagnosticStatus.OK, 'running')
@@ -163,13 +155,13 @@ def test_parameters_are_declared_with_their_descriptions(running):
 
 def test_auto_reliability_follows_a_best_effort_publisher(running):
     node, probe = running(detector='classical')
-    assert _wait(lambda: 'input_reliability' in probe.diagnostic_values(), 10)
+    assert wait_until(lambda: 'input_reliability' in probe.diagnostic_values(), 10)
     assert probe.diagnostic_values()['input_reliability'] == 'RELIABLE'
     driver = probe.node.create_publisher(
         PointCloud2, 'points', QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT))
-    assert _wait(lambda: node.points_reliability == ReliabilityPolicy.BEST_EFFORT, 10)
-    assert _wait(lambda: driver.get_subscription_count() == 1, 10)
-    assert _wait(lambda: probe.diagnostic_values()['input_reliability'] == 'BEST_EFFORT', 5)
+    assert wait_until(lambda: node.points_reliability == ReliabilityPolicy.BEST_EFFORT, 10)
+    assert wait_until(lambda: driver.get_subscription_count() == 1, 10)
+    assert wait_until(lambda: probe.diagnostic_values()['input_reliability'] == 'BEST_EFFORT', 5)
 
 
 def test_bad_parameters_are_refused_before_anything_starts(rclpy_context):
@@ -183,14 +175,14 @@ def test_bad_parameters_are_refused_before_anything_starts(rclpy_context):
 
 def test_bad_clouds_are_dropped_and_counted(running):
     node, probe = running(detector='classical')
-    assert _wait(lambda: probe.points.get_subscription_count() > 0, 10)
+    assert wait_until(lambda: probe.points.get_subscription_count() > 0, 10)
     family = rclpy_family()
     points = np.zeros(100, dtype=[('x', '<f4'), ('y', '<f4'), ('z', '<f4'),
                                   ('intensity', '<f4')])
     truncated = create_cloud(PointCloud2, family.header(START_NS, 'lidar'), points)
     truncated.data = truncated.data[:-16]
     probe.points.publish(truncated)
-    assert _wait(lambda: probe.diagnostic_values().get('bad_clouds') == '1', 10), (
+    assert wait_until(lambda: probe.diagnostic_values().get('bad_clouds') == '1', 10), (
         probe.diagnostic_values())
     status = probe.diagnostics[-1].status[0]
     assert (status.level, status.message) == (DiagnosticStatus.WARN, '1 bad messages dropped')

@@ -17,6 +17,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Path
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from ros_helpers import wait_until
 from visualization_msgs.msg import MarkerArray
 
 from fhld_ros.bagio import read_messages
@@ -73,15 +74,6 @@ class Listener:
         self.node.destroy_node()
 
 
-def _wait(predicate, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.1)
-    return predicate()
-
-
 @pytest.fixture(scope='module')
 def node_process(ros_env):
     node = subprocess.Popen(
@@ -104,14 +96,14 @@ def test_bag_played_to_the_node_gives_the_replay_lanes(scene, node_process, ros_
     try:
         # subscriptions match while the node is still starting up; its first diagnostics
         # say it spins, so nothing published from now on waits in a full reader queue
-        assert _wait(lambda: len(listener.diagnostics) >= 1, 60), 'the node never came up'
+        assert wait_until(lambda: len(listener.diagnostics) >= 1, 60), 'the node never came up'
         play = subprocess.run(
             [sys.executable, '-m', 'fhld_ros.cli', 'play', str(sim), '--wait-for', '/points',
              '/odom'],
             env=ros_env, capture_output=True, text=True, timeout=120)
         assert play.returncode == 0, play.stderr
-        assert _wait(lambda: len(listener.diagnostics) >= 1, 10)
-        _wait(lambda: int(listener.diagnostic_values().get('clouds', 0)) >= SWEEPS, 10)
+        assert wait_until(lambda: len(listener.diagnostics) >= 1, 10)
+        wait_until(lambda: int(listener.diagnostic_values().get('clouds', 0)) >= SWEEPS, 10)
         time.sleep(1.0)  # the last detection cycle
         assert node_process.poll() is None, 'the node died'
         values = listener.diagnostic_values()
@@ -160,8 +152,8 @@ def test_bad_clouds_are_dropped_counted_and_the_node_lives(node_process, rclpy_c
                                     QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
     clock = pub_node.create_publisher(family.cls('rosgraph_msgs/msg/Clock'), '/clock', 10)
     try:
-        assert _wait(lambda: pub.get_subscription_count() > 0, 10)
-        before = int(listener.diagnostic_values().get('bad_clouds', 0)) if _wait(
+        assert wait_until(lambda: pub.get_subscription_count() > 0, 10)
+        before = int(listener.diagnostic_values().get('bad_clouds', 0)) if wait_until(
             lambda: listener.diagnostics, 5) else 0
         stamp = 10_000_000_000_000
         points = np.zeros(100, dtype=[('x', '<f4'), ('y', '<f4'), ('z', '<f4'),
@@ -175,8 +167,9 @@ def test_bad_clouds_are_dropped_counted_and_the_node_lives(node_process, rclpy_c
         for msg in (truncated, fieldless, all_nan):
             clock.publish(family.new('rosgraph_msgs/msg/Clock', clock=family.stamp(stamp)))
             pub.publish(msg)
-        assert _wait(lambda: int(listener.diagnostic_values().get('bad_clouds', 0)) >= before + 2,
-                     10), listener.diagnostic_values()
+        def bad_clouds() -> int:
+            return int(listener.diagnostic_values().get('bad_clouds', 0))
+        assert wait_until(lambda: bad_clouds() >= before + 2, 10), listener.diagnostic_values()
         values = listener.diagnostic_values()
         assert 'PointCloud2' in values['last_error'] or 'odometry' in values['last_error']
         assert node_process.poll() is None, 'the node died on bad input'

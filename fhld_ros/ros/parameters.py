@@ -6,13 +6,13 @@ This module needs no rclpy: the pipeline and `fhld replay` use it too.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from fhld_ros.dataclass_dict import from_dict
+from fhld_ros.dataclass_dict import documented, from_dict
 from fhld_ros.errors import CliError
 from fhld_ros.model.config import FhldConfig
 
@@ -21,50 +21,44 @@ from fhld_ros.model.config import FhldConfig
 class DetectorParams:
     """Every parameter of lane_detector; field metadata 'doc' is the ROS descriptor text."""
 
-    points_topic: str = field(default='points', metadata={
-        'doc': 'input sensor_msgs/PointCloud2 topic'})
-    odom_topic: str = field(default='odom', metadata={
-        'doc': 'input nav_msgs/Odometry topic; without messages the node works per sweep'})
-    lanes_topic: str = field(default='lanes', metadata={
-        'doc': 'output MarkerArray topic; ego lane Paths go to <lanes_topic>/ego_left|right'})
-    detector: str = field(default='fhld', metadata={
-        'doc': "'fhld' (the learned model) or 'classical' (rule-based baseline)"})
-    checkpoint: str = field(default='', metadata={
-        'doc': 'FHLD weights (.pt); empty = the shipped fhld_ros/checkpoints/fhld.pt'})
-    device: str = field(default='cpu', metadata={
-        'doc': "'cpu' or 'cuda' for the model"})
-    model_threads: int = field(default=0, metadata={
-        'doc': 'CPU threads for the model; 0 = auto: one per core with ONNX Runtime, 1 with '
-               'TorchScript (whose OpenMP threads stalled beside the executor)'})
-    model_runtime: str = field(default='auto', metadata={
-        'doc': "how the model runs: 'auto' (ONNX Runtime on the CPU when installed, else "
-               "TorchScript), 'onnxruntime' (CPU) or 'torchscript'"})
-    score_threshold: float = field(default=0.5, metadata={
-        'doc': 'minimum lane confidence to publish'})
-    refine_heights: bool = field(default=True, metadata={
-        'doc': 'FHLD lane heights follow the measured road surface (robust fit of the '
-               "raster's minimum heights); false keeps the model's own heights"})
-    local_refine_steps: int = field(default=FhldConfig.local_refine_steps, metadata={
-        'doc': 'FHLD anchor cells re-centred on the segment they found and classified again '
-               'this many times (0 = on the global curves only)'})
-    size_px: int = field(default=640, metadata={
-        'doc': 'BEV window size in cells (square)'})
-    resolution_m: float = field(default=0.04, metadata={
-        'doc': 'BEV cell size in metres'})
-    accumulate_sec: float = field(default=1.0, metadata={
-        'doc': 'sweeps younger than this (relative to the newest) are accumulated'})
-    max_sweeps: int = field(default=10, metadata={
-        'doc': 'at most this many sweeps are accumulated (memory bound)'})
-    rate_hz: float = field(default=10.0, metadata={
-        'doc': 'detection rate; the timer runs on ROS time (use_sim_time for bags)'})
-    intensity_scale: float = field(default=0.0, metadata={
-        'doc': 'full scale of the intensity field; 0 = infer per sweep (1, 255, 65535)'})
-    input_reliability: str = field(default='auto', metadata={
-        'doc': "points subscription reliability: 'auto' (reliable, switching to best effort "
-               "while a best-effort publisher exists), 'reliable' or 'best_effort'"})
-    lidar_to_base: tuple[float, ...] = field(default=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0), metadata={
-        'doc': 'static cloud frame -> odometry child frame [x, y, z, roll, pitch, yaw], used '
-               'when the cloud frame differs from child_frame_id'})
+    points_topic: str = documented('points', 'input sensor_msgs/PointCloud2 topic')
+    odom_topic: str = documented(
+        'odom', 'input nav_msgs/Odometry topic; without messages the node works per sweep')
+    lanes_topic: str = documented(
+        'lanes', 'output MarkerArray topic; ego lane Paths go to <lanes_topic>/ego_left|right')
+    detector: str = documented(
+        'fhld', "'fhld' (the learned model) or 'classical' (rule-based baseline)")
+    checkpoint: str = documented(
+        '', 'FHLD weights (.pt); empty = the shipped fhld_ros/checkpoints/fhld.pt')
+    device: str = documented('cpu', "'cpu' or 'cuda' for the model")
+    model_threads: int = documented(
+        0, 'CPU threads for the model; 0 = auto: one per core with ONNX Runtime, 1 with '
+        'TorchScript (whose OpenMP threads stalled beside the executor)')
+    model_runtime: str = documented(
+        'auto', "how the model runs: 'auto' (ONNX Runtime on the CPU when installed, else "
+        "TorchScript), 'onnxruntime' (CPU) or 'torchscript'")
+    score_threshold: float = documented(0.5, 'minimum lane confidence to publish')
+    refine_heights: bool = documented(
+        True, 'FHLD lane heights follow the measured road surface (robust fit of the '
+        "raster's minimum heights); false keeps the model's own heights")
+    local_refine_steps: int = documented(
+        FhldConfig.local_refine_steps, 'FHLD anchor cells re-centred on the segment they found '
+        'and classified again this many times (0 = on the global curves only)')
+    size_px: int = documented(640, 'BEV window size in cells (square)')
+    resolution_m: float = documented(0.04, 'BEV cell size in metres')
+    accumulate_sec: float = documented(
+        1.0, 'sweeps younger than this (relative to the newest) are accumulated')
+    max_sweeps: int = documented(10, 'at most this many sweeps are accumulated (memory bound)')
+    rate_hz: float = documented(
+        10.0, 'detection rate; the timer runs on ROS time (use_sim_time for bags)')
+    intensity_scale: float = documented(
+        0.0, 'full scale of the intensity field; 0 = infer per sweep (1, 255, 65535)')
+    input_reliability: str = documented(
+        'auto', "points subscription reliability: 'auto' (reliable, switching to best effort "
+        "while a best-effort publisher exists), 'reliable' or 'best_effort'")
+    lidar_to_base: tuple[float, ...] = documented(
+        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0), 'static cloud frame -> odometry child frame '
+        '[x, y, z, roll, pitch, yaw], used when the cloud frame differs from child_frame_id')
 
     def __post_init__(self) -> None:
         problems = []
