@@ -10,16 +10,13 @@ import time
 
 import numpy as np
 import pytest
-import rclpy
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from nav_msgs.msg import Odometry, Path
+from diagnostic_msgs.msg import DiagnosticStatus
+from nav_msgs.msg import Odometry
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from ros_helpers import wait_until
+from ros_helpers import NodeOutputs, wait_until
 from sensor_msgs.msg import PointCloud2
-from visualization_msgs.msg import MarkerArray
 
 from fhld_ros.dataclass_dict import field_docs, to_plain
 from fhld_ros.ros.diagnostics import STAGES
@@ -38,34 +35,13 @@ START_NS = 1_700_000_000_000_000_000
 RELIABLE = QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE)
 
 
-class Probe:
+class Probe(NodeOutputs):
     """Publishes clouds and odometry, collects the node's outputs; spins in its own thread."""
 
     def __init__(self, context) -> None:
-        self.node = rclpy.create_node('node_probe', context=context)
-        self.lanes, self.left, self.right, self.diagnostics = [], [], [], []
-        self.node.create_subscription(MarkerArray, 'lanes', self.lanes.append, RELIABLE)
-        self.node.create_subscription(Path, 'lanes/ego_left', self.left.append, RELIABLE)
-        self.node.create_subscription(Path, 'lanes/ego_right', self.right.append, RELIABLE)
-        self.node.create_subscription(DiagnosticArray, 'diagnostics', self.diagnostics.append,
-                                      RELIABLE)
+        super().__init__(context, 'node_probe')
         self.points = self.node.create_publisher(PointCloud2, 'points', RELIABLE)
         self.odom = self.node.create_publisher(Odometry, 'odom', RELIABLE)
-        self.executor = SingleThreadedExecutor(context=context)
-        self.executor.add_node(self.node)
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
-
-    def _spin(self) -> None:
-        try:
-            self.executor.spin()
-        except ExternalShutdownException:
-            pass  # the context shut down: the end of the test
-
-    def diagnostic_values(self) -> dict[str, str]:
-        if not self.diagnostics:
-            return {}
-        return {kv.key: kv.value for kv in self.diagnostics[-1].status[0].values}
 
 
 @pytest.fixture(scope='module')

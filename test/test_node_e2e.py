@@ -8,17 +8,13 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
-import threading
 import time
 
 import numpy as np
 import pytest
 import rclpy
-from diagnostic_msgs.msg import DiagnosticArray
-from nav_msgs.msg import Path
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from ros_helpers import wait_until
-from visualization_msgs.msg import MarkerArray
+from ros_helpers import NodeOutputs, wait_until
 
 from fhld_ros.bagio import read_messages
 from msg_adapters.family import rclpy_family
@@ -47,33 +43,6 @@ def scene(tmp_path_factory):
     return sim, replayed
 
 
-class Listener:
-    """Collects the node's outputs in a background executor."""
-
-    def __init__(self, context):
-        self.node = rclpy.create_node('e2e_listener', context=context)
-        qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
-        self.lanes, self.left, self.right, self.diagnostics = [], [], [], []
-        self.node.create_subscription(MarkerArray, 'lanes', self.lanes.append, qos)
-        self.node.create_subscription(Path, 'lanes/ego_left', self.left.append, qos)
-        self.node.create_subscription(Path, 'lanes/ego_right', self.right.append, qos)
-        self.node.create_subscription(DiagnosticArray, 'diagnostics', self.diagnostics.append,
-                                      qos)
-        self.executor = rclpy.executors.SingleThreadedExecutor(context=context)
-        self.executor.add_node(self.node)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self.thread.start()
-
-    def diagnostic_values(self) -> dict[str, str]:
-        if not self.diagnostics:
-            return {}
-        return {kv.key: kv.value for kv in self.diagnostics[-1].status[0].values}
-
-    def close(self):
-        self.executor.shutdown()
-        self.node.destroy_node()
-
-
 @pytest.fixture(scope='module')
 def node_process(ros_env):
     node = subprocess.Popen(
@@ -92,7 +61,7 @@ def node_process(ros_env):
 def test_bag_played_to_the_node_gives_the_replay_lanes(scene, node_process, ros_env,
                                                        rclpy_context):
     sim, replayed = scene
-    listener = Listener(rclpy_context)
+    listener = NodeOutputs(rclpy_context, 'e2e_listener', depth=50)
     try:
         # subscriptions match while the node is still starting up; its first diagnostics
         # say it spins, so nothing published from now on waits in a full reader queue
@@ -145,7 +114,7 @@ def test_bag_played_to_the_node_gives_the_replay_lanes(scene, node_process, ros_
 
 def test_bad_clouds_are_dropped_counted_and_the_node_lives(node_process, rclpy_context):
     family = rclpy_family()
-    listener = Listener(rclpy_context)
+    listener = NodeOutputs(rclpy_context, 'e2e_listener', depth=50)
     pub_node = rclpy.create_node('bad_cloud_publisher', context=rclpy_context)
     cloud_type = family.cls('sensor_msgs/msg/PointCloud2')
     pub = pub_node.create_publisher(cloud_type, 'points',
