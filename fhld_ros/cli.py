@@ -19,6 +19,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     'play': ('fhld_ros.ros.play', 'publish a bag over DDS in real time with /clock'),
     'demo': ('fhld_ros.commands.demo',
              'simulate a drive, detect lanes, score them and draw a picture'),
+    'import': ('fhld_ros.commands.import_scans',
+               'PCD files or KITTI .bin sweeps as an MCAP bag (/points, /odom from poses)'),
     'eval': ('fhld_ros.evaluation.evaluate',
              'score predicted /lanes against /lanes_gt (FHLD point metric, ONCE-3DLanes metric)'),
     'simulate': ('fhld_ros.sim.simulate', 'write a simulated road scene as a rosbag2 MCAP bag'),

@@ -142,9 +142,12 @@ def ego_lane_bounds(lanes_window: list[np.ndarray],
 class LanePipeline:
     """Odometry + clouds -> rolling BEV grid -> detector -> lanes in the output frame."""
 
-    def __init__(self, params: DetectorParams, detector: LaneDetector) -> None:
+    def __init__(self, params: DetectorParams, detector: LaneDetector,
+                 expect_odometry: bool = True) -> None:
         self.params = params
         self.detector = detector
+        # False when it is known that no odometry will come (a bag without it): no sweep waits
+        self.expect_odometry = expect_odometry
         self.grid = RollingBevGrid(BevSpec(params.size_px, params.resolution_m),
                                    params.accumulate_sec, params.max_sweeps)
         self.odometry = PoseBuffer()
@@ -193,7 +196,8 @@ class LanePipeline:
         decoded = time.perf_counter()
         sweep = (stamp_to_ns(msg.header.stamp), str(msg.header.frame_id), xyz, intensity)
         ahead = self.uses_odometry and sweep[0] > self.odometry.stamps[-1]
-        first = not self.uses_odometry and self.counters['clouds'] == 0  # odometry may be near
+        first = (self.expect_odometry and not self.uses_odometry
+                 and self.counters['clouds'] == 0)  # odometry may be near
         if ahead or first or self.pending:
             self.pending.append(sweep)
             if len(self.pending) <= MAX_PENDING:
@@ -206,6 +210,14 @@ class LanePipeline:
             self._insert(*sweep)
         done = time.perf_counter()
         return {'decode_ms': (decoded - start) * 1e3, 'grid_insert_ms': (done - decoded) * 1e3}
+
+    def insert_waiting(self) -> bool:
+        """Insert the oldest sweep still waiting for odometry (at the end of a bag); False when
+        none waits. Raises ValueError when no odometry lies around its stamp."""
+        if not self.pending:
+            return False
+        self._insert(*self.pending.popleft())
+        return True
 
     def _insert(self, stamp_ns: int, frame: str, xyz: np.ndarray, intensity: np.ndarray) -> None:
         pose = self.sensor_pose(stamp_ns, frame)

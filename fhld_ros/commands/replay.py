@@ -44,7 +44,8 @@ def replay(in_bag: Path, out_bag: Path, params: DetectorParams, points_topic: st
     if counts[points_topic] == 0:
         raise CliError(f'bag {in_bag} has no messages on {points_topic}')
     topics = [points_topic] + ([odom_topic] if odom_topic in counts else [])
-    pipeline = LanePipeline(params, make_detector(params))
+    has_odometry = counts.get(odom_topic, 0) > 0
+    pipeline = LanePipeline(params, make_detector(params), expect_odometry=has_odometry)
     period_ns = round(1e9 / params.rate_hz)
     lanes_topic = '/' + params.lanes_topic.strip('/')
     next_tick: int | None = None
@@ -64,22 +65,12 @@ def replay(in_bag: Path, out_bag: Path, params: DetectorParams, points_topic: st
                              lane_to_path(family, header, lane))
             stats['detections'] += 1
 
-        for topic, _, msg in read_messages(in_bag, topics):
-            bar.update()
-            if topic == points_topic:
-                try:
-                    pipeline.add_cloud(msg)
-                    stats['sweeps'] += 1
-                except ValueError as exc:
-                    stats['dropped'] += 1
-                    bar.write(f'dropped cloud at {stamp_to_ns(msg.header.stamp) * 1e-9:.3f} s: '
-                              f'{exc}')
-            else:
-                pipeline.add_odometry(msg)
-            # the detection timer fires on the stamps of the sweeps in the grid
+        def timer() -> None:
+            """The detection timer, firing on the stamps of the sweeps in the grid."""
+            nonlocal next_tick
             newest = pipeline.grid.newest_stamp_ns
             if newest is None:
-                continue
+                return
             if next_tick is None or newest < next_tick - period_ns:
                 next_tick = newest  # first sweep, or time went back (the grid reset too)
             while newest >= next_tick:
@@ -87,6 +78,30 @@ def replay(in_bag: Path, out_bag: Path, params: DetectorParams, points_topic: st
                 if out is not None:
                     publish(out)
                 next_tick += period_ns
+
+        def dropped(stamp_ns: int, exc: ValueError) -> None:
+            stats['dropped'] += 1
+            bar.write(f'dropped cloud at {stamp_ns * 1e-9:.3f} s: {exc}')
+
+        for topic, _, msg in read_messages(in_bag, topics):
+            bar.update()
+            if topic == points_topic:
+                try:
+                    pipeline.add_cloud(msg)
+                    stats['sweeps'] += 1
+                except ValueError as exc:
+                    dropped(stamp_to_ns(msg.header.stamp), exc)
+            else:
+                pipeline.add_odometry(msg)
+            timer()
+        while pipeline.pending:  # the bag ended before the odometry of its last sweeps
+            stamp_ns = pipeline.pending[0][0]
+            try:
+                pipeline.insert_waiting()
+            except ValueError as exc:
+                stats['sweeps'] -= 1
+                dropped(stamp_ns, exc)
+            timer()
     bar.close()
     return stats
 

@@ -1,0 +1,1 @@
+"""Readers for point-cloud files that `fhld import` turns into bags: PCD and KITTI `.bin`."""
