@@ -23,6 +23,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
                'PCD files or KITTI .bin sweeps as an MCAP bag (/points, /odom from poses)'),
     'eval': ('fhld_ros.evaluation.evaluate',
              'score predicted /lanes against /lanes_gt (FHLD point metric, ONCE-3DLanes metric)'),
+    'realscans': ('fhld_ros.evaluation.real_scans',
+                  'detectors on the real development sweeps, scored against hand labels'),
     'simulate': ('fhld_ros.sim.simulate', 'write a simulated road scene as a rosbag2 MCAP bag'),
     'testset': ('fhld_ros.evaluation.testset',
                 'score detectors on the fixed held-out simulated test set'),

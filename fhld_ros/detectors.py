@@ -13,6 +13,7 @@ import torch
 
 from fhld_ros.classical import ClassicalLaneDetector
 from fhld_ros.errors import CliError
+from fhld_ros.evidence import keep_observed
 from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT, CheckpointError, load_checkpoint
 from fhld_ros.model.config import FhldConfig
 from fhld_ros.model.detector import Detections, FhldDetector
@@ -77,12 +78,14 @@ def fhld_detections(params: DetectorParams, eager: bool = False,
 
 
 def fhld_detector(params: DetectorParams) -> Detector:
-    """The FHLD model from params.checkpoint (default: the shipped weights), as served."""
+    """The FHLD model from params.checkpoint (default: the shipped weights), as served; lanes
+    keep only their parts near observed ground (evidence.py, params.evidence_reach_m)."""
     detections = fhld_detections(params)
 
     def detect(window: BevWindow) -> tuple[list[np.ndarray], np.ndarray]:
         found = detections(window)
-        return found.lanes, found.confidences
+        return keep_observed(found.lanes, found.confidences, window.raster,
+                             window.spec.resolution_m, params.evidence_reach_m)
     return detect
 
 
@@ -91,16 +94,22 @@ def fhld_variants(params: DetectorParams,
     """BevWindow -> {FHLD_VARIANTS name: lanes}, all from ONE model.detect call.
 
     'fhld' the final lanes (heights refined from the measured surface), 'fhld-model-z' the
-    same lanes with the local branch's own heights, 'fhld-global' the global curves alone.
+    same lanes with the local branch's own heights (both cut to observed ground as
+    fhld_detector does, after the heights), 'fhld-global' the global curves alone.
     params.refine_heights is ignored: both kinds of heights are returned.
     """
     detections = fhld_detections(dataclasses.replace(params, refine_heights=False), eager=eager,
                                  curve_points=CURVE_POINTS)
 
+    def observed(lanes: list[np.ndarray], window: BevWindow) -> list[np.ndarray]:
+        return keep_observed(lanes, np.zeros(len(lanes)), window.raster,
+                             window.spec.resolution_m, params.evidence_reach_m)[0]
+
     def detect(window: BevWindow) -> dict[str, list[np.ndarray]]:
         found = detections(window)
         refined = refine_lane_heights(found.lanes, window.raster, window.spec.resolution_m)
-        return {'fhld': refined, 'fhld-model-z': found.lanes, 'fhld-global': found.curves}
+        return {'fhld': observed(refined, window), 'fhld-model-z': observed(found.lanes, window),
+                'fhld-global': found.curves}
     return detect
 
 

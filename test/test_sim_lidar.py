@@ -8,6 +8,7 @@ from fhld_ros.sim import ego
 from fhld_ros.sim.lidar import SENSORS, ouster_dtype, velodyne_dtype
 from fhld_ros.sim.scene import ASPHALT, GROUND_MATERIALS, PAINT
 from fhld_ros.sim.simulator import Simulator
+from fhld_ros.training.cache import ALL_SENSORS
 
 
 def test_presets_cover_32_64_128_beams_with_real_angle_sets() -> None:
@@ -18,6 +19,19 @@ def test_presets_cover_32_64_128_beams_with_real_angle_sets() -> None:
     assert np.diff(np.sort(vlp32)).min() < 0.34 < np.diff(np.sort(vlp32)).max()  # dense centre
     os64 = np.array(SENSORS['os1-64'].elevations_deg)
     assert np.allclose(np.diff(os64), np.diff(os64)[0], atol=1e-3)  # Ouster: uniform spacing
+
+
+def test_forward_scanner_returns_only_inside_its_field_of_view() -> None:
+    sim = Simulator(3, sweeps=1, sensor='forward70', columns=1024)
+    p = sim.sweep(0).points
+    xy = np.column_stack([p['x'], p['y']]).astype(np.float64)
+    azimuth = np.degrees(np.arctan2(xy[:, 1], xy[:, 0]))
+    assert len(p) > 2000
+    assert np.abs(azimuth).max() <= 70.4 / 2 + 0.5
+    assert azimuth.min() < -30 and azimuth.max() > 30  # the whole field, not a slice of it
+    # spinning presets only in the training cache and the test set's rotation
+    assert 'forward70' in SENSORS and 'forward70' not in ALL_SENSORS
+    assert len(ALL_SENSORS) == 8
 
 
 def test_ouster_layout_organised_padded_with_zero_or_nan_no_returns() -> None:

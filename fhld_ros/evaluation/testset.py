@@ -40,6 +40,7 @@ from fhld_ros.errors import CliError
 from fhld_ros.evaluation import metrics
 from fhld_ros.rolling_grid import BevWindow
 from fhld_ros.ros.parameters import DetectorParams
+from fhld_ros.sim.lidar import SENSORS
 from fhld_ros.sim.simulator import Simulator
 from fhld_ros.training.cache import TEST_SEED_BASE, CacheSettings, scenario_for_seed
 from fhld_ros.training.samples import training_samples
@@ -57,6 +58,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--windows-per-seed', type=int, default=WINDOWS_PER_SEED)
     parser.add_argument('--checkpoint', type=Path, help='FHLD weights (default: shipped)')
     parser.add_argument('--score-threshold', type=float, default=0.5)
+    parser.add_argument('--sensor', choices=sorted(SENSORS),
+                        help='every seed with this sensor preset instead of its own (e.g. '
+                             'forward70, the forward-only scanner); topologies stay the same')
     parser.add_argument('--workers', type=int, default=2, help='parallel processes')
     parser.add_argument('--json', action='store_true', help='print one JSON object last')
 
@@ -79,10 +83,12 @@ def _detect(window: BevWindow) -> dict[str, list[np.ndarray]]:
     return {name: found[name] for name in _worker['detectors']}
 
 
-def evaluate_seed(seed: int, windows: int) -> dict:
+def evaluate_seed(seed: int, windows: int, sensor: str | None = None) -> dict:
     """Counts per detector for one test seed (runs in a worker process)."""
     settings = CacheSettings(windows_per_seed=windows)
     scenario = scenario_for_seed(seed, settings)
+    if sensor is not None:
+        scenario['sensor'] = sensor
     sim = Simulator(seed, sweeps=settings.sweeps_per_seed, **scenario)
     point = {name: metrics.PointCounts() for name in _worker['detectors']}
     once = {name: metrics.LaneCounts() for name in _worker['detectors']}
@@ -110,7 +116,8 @@ def run(args: argparse.Namespace) -> int:
     start = time.monotonic()
     with ProcessPoolExecutor(args.workers, mp_context=get_context('spawn'), initializer=_init,
                              initargs=init) as pool:
-        futures = [pool.submit(evaluate_seed, seed, args.windows_per_seed) for seed in seeds]
+        futures = [pool.submit(evaluate_seed, seed, args.windows_per_seed, args.sensor)
+                   for seed in seeds]
         results = [f.result() for f in tqdm(futures, desc='test set', unit='seed',
                                             file=sys.stderr)]
     report = summarise(results, args.detectors)

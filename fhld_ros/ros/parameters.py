@@ -44,6 +44,9 @@ class DetectorParams:
     local_refine_steps: int = documented(
         FhldConfig.local_refine_steps, 'FHLD anchor cells re-centred on the segment they found '
         'and classified again this many times (0 = on the global curves only)')
+    evidence_reach_m: float = documented(
+        1.5, 'FHLD lanes are cut where no return lies within this distance (m) in the window: '
+        'no lanes over ground the sensor never saw (0 = off)')
     size_px: int = documented(640, 'BEV window size in cells (square)')
     resolution_m: float = documented(0.04, 'BEV cell size in metres')
     accumulate_sec: float = documented(
@@ -79,6 +82,8 @@ class DetectorParams:
             problems.append('local_refine_steps must be an integer >= 0')
         if len(self.lidar_to_base) != 6:
             problems.append('lidar_to_base must be [x, y, z, roll, pitch, yaw]')
+        if not self.evidence_reach_m >= 0:
+            problems.append('evidence_reach_m must be >= 0')
         if not (self.rate_hz > 0 and self.accumulate_sec >= 0 and self.max_sweeps >= 1
                 and self.size_px >= 32 and self.resolution_m > 0):
             problems.append('rate_hz, resolution_m > 0, accumulate_sec >= 0, max_sweeps >= 1 '

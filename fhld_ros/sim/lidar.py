@@ -1,12 +1,13 @@
-"""Spinning multi-beam LiDAR: sensor presets, return/intensity model and driver point layouts.
+"""Multi-beam LiDAR: sensor presets, return/intensity model and driver point layouts.
 
-Presets follow the published vertical angle sets of common sensors (Velodyne VLP-16/VLP-32C/
-HDL-32E/HDL-64E, Ouster OS1/OS2). Returns follow a simple radiometric model: apparent
-reflectance = diffuse part (rough surfaces: rho * sqrt(cos incidence)) + retro-reflective part
-(glass-bead paint, weakly incidence dependent); detection probability falls with
-reflectance / range^2 so dark and grazing far ground fades out as on real sensors. Outputs use
-the layouts of the Ouster driver (organised, padded 48-byte points, zero or NaN no-returns,
-`t` in ns, calibrated uint16 `reflectivity`) or the Velodyne driver (unorganised XYZIRT).
+Presets follow the published vertical angle sets of common spinning sensors (Velodyne VLP-16/
+VLP-32C/HDL-32E/HDL-64E, Ouster OS1/OS2), plus a forward-only scanner with a 70 degree field of
+view. Returns follow a simple radiometric model: apparent reflectance = diffuse part (rough
+surfaces: rho * sqrt(cos incidence)) + retro-reflective part (glass-bead paint, weakly incidence
+dependent); detection probability falls with reflectance / range^2 so dark and grazing far
+ground fades out as on real sensors. Outputs use the layouts of the Ouster driver (organised,
+padded 48-byte points, zero or NaN no-returns, `t` in ns, calibrated uint16 `reflectivity`) or
+the Velodyne driver (unorganised XYZIRT).
 """
 from __future__ import annotations
 
@@ -39,6 +40,7 @@ class SensorPreset:
     sigma_k: float
     gain_sigma: float  # per-beam intensity gain spread (uncalibrated sensors stripe)
     mount_z: float = 1.95  # height above ground
+    azimuth_fov_deg: float = 360.0  # < 360: a forward-only scanner, no returns outside it
 
     @property
     def beams(self) -> int:
@@ -65,7 +67,13 @@ SENSORS: dict[str, SensorPreset] = {p.name: p for p in (
                  0.015, 2e-4, 0.02),
     SensorPreset('os2-128', _uniform(-11.25, 11.25, 128), 1024, 'ouster', 'reflectivity', 240,
                  110, 0.025, 2e-4, 0.02),
+    # Forward-only solid-state scanner (Livox-like, ~70 x 77 degree field of view), modelled
+    # as a dense grid clipped to its field of view; its non-repetitive pattern is not modelled.
+    SensorPreset('forward70', _uniform(-38.6, 38.6, 64), 2048, 'velodyne', 'u8', 190, 60,
+                 0.02, 2e-4, 0.05, azimuth_fov_deg=70.4),
 )}
+# Spinning sensors: the presets the training cache and the test set cycle through.
+SPINNING = tuple(name for name, preset in SENSORS.items() if preset.azimuth_fov_deg >= 360.0)
 DEFAULT_SENSOR = 'os1-64'
 
 

@@ -217,6 +217,7 @@ class Simulator:
         self._ego_t = caster.t
         self.grid = GroundGrid(surface)
         self._col_time = (np.arange(self.columns) + 0.5) / self.columns * PERIOD_S
+        self._in_fov = np.abs(self.azimuth) <= np.deg2rad(self.preset.azimuth_fov_deg) / 2
 
     # -- sweeps -------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -293,7 +294,7 @@ class Simulator:
             g_mat, g_rho, g_retro, g_cos = self._shade_ground(s_g[gi], d_g[gi], z_g, dirs_g)
             for arr, val in ((material, g_mat), (rho, g_rho), (retro, g_retro), (cos, g_cos)):
                 arr.reshape(-1)[gi] = val
-        t_hit = np.where(ground | obj, t, np.inf)
+        t_hit = np.where((ground | obj) & self._in_fov, t, np.inf)
         valid, r_meas, value = detect_and_measure(
             Returns(rho, retro, cos, t_hit), preset, self.scale, self.gains,
             r_noise if self.config.noise else None)

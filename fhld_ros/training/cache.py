@@ -41,13 +41,13 @@ from tqdm import tqdm
 from fhld_ros.bev import BevSpec
 from fhld_ros.dataclass_dict import to_plain
 from fhld_ros.sim.layout import TOPOLOGIES
-from fhld_ros.sim.lidar import SENSORS
+from fhld_ros.sim.lidar import SENSORS, SPINNING
 from fhld_ros.sim.simulator import Simulator
 from fhld_ros.training.samples import training_samples
 
 SHARD_FORMAT = 1
 TEST_SEED_BASE = 1_000_000
-ALL_SENSORS: tuple[str, ...] = tuple(SENSORS)
+ALL_SENSORS: tuple[str, ...] = SPINNING
 ALL_TOPOLOGIES: tuple[str | None, ...] = (None, *TOPOLOGIES)  # None: the layout's own events
 INDEX_NAME = 'cache.json'
 

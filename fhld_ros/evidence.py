@@ -1,0 +1,60 @@
+"""Lanes only where the sensor looked: lane ends far from every observed cell are cut.
+
+The model draws a lane through the whole window once it has found it, also across ground that
+no return ever touched: the sector beside and behind a forward-only scanner, the road past a
+row of vehicles. A cell is observed when the window's density channel is non-zero; a lane point
+is supported when an observed cell lies within `reach_m` of it (a square neighbourhood: cheap
+with an integral image). Each lane keeps the span from its first to its last supported point,
+if that is at least `min_length_m` long. Gaps inside the span stay bridged: splitting a lane
+there cost the lane-level (ONCE-3DLanes) matching more than it gained (docs/accuracy.md), and
+the ring gaps of a sparse sensor or the blind ring around a single sweep are such gaps.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+DENSITY_CHANNEL = 1
+
+
+def observed_near(raster: np.ndarray, reach_px: int) -> np.ndarray:
+    """(H, W) bool: some observed cell lies within reach_px cells (Chebyshev distance)."""
+    occupied = raster[DENSITY_CHANNEL] > 0
+    if reach_px <= 0:
+        return occupied
+    h, w = occupied.shape
+    integral = np.zeros((h + 1, w + 1), dtype=np.int32)
+    np.cumsum(np.cumsum(occupied, axis=0, dtype=np.int32), axis=1, out=integral[1:, 1:])
+    rows = np.arange(h)
+    cols = np.arange(w)
+    r0, r1 = np.clip(rows - reach_px, 0, h), np.clip(rows + reach_px + 1, 0, h)
+    c0, c1 = np.clip(cols - reach_px, 0, w), np.clip(cols + reach_px + 1, 0, w)
+    count = (integral[r1][:, c1] - integral[r0][:, c1] - integral[r1][:, c0]
+             + integral[r0][:, c0])
+    return count > 0
+
+
+def keep_observed(lanes: list[np.ndarray], confidences: np.ndarray, raster: np.ndarray,
+                  resolution_m: float, reach_m: float, min_length_m: float = 2.0
+                  ) -> tuple[list[np.ndarray], np.ndarray]:
+    """Each (K, 3) window-frame lane from its first to its last supported point, with its
+    confidence; lanes with no supported span of min_length_m are dropped.
+
+    reach_m <= 0 returns the lanes unchanged.
+    """
+    if reach_m <= 0 or not lanes:
+        return lanes, confidences
+    mask = observed_near(raster, int(round(reach_m / resolution_m)))
+    size = mask.shape[0]
+    half = size * resolution_m / 2
+    kept, scores = [], []
+    for lane, score in zip(lanes, np.asarray(confidences)):
+        col = np.clip(((lane[:, 0] + half) / resolution_m).astype(int), 0, size - 1)
+        row = np.clip(((lane[:, 1] + half) / resolution_m).astype(int), 0, size - 1)
+        supported = np.flatnonzero(mask[row, col])
+        if supported.size < 2:
+            continue
+        span = lane[supported[0]:supported[-1] + 1]
+        if np.linalg.norm(np.diff(span[:, :2], axis=0), axis=1).sum() >= min_length_m:
+            kept.append(span)
+            scores.append(score)
+    return kept, np.asarray(scores, dtype=np.asarray(confidences).dtype)

@@ -1,0 +1,74 @@
+"""fhld_ros.evidence: lanes are cut where no observed cell lies within reach."""
+from __future__ import annotations
+
+import numpy as np
+
+from fhld_ros.evidence import keep_observed, observed_near
+
+RES = 0.04
+SIZE = 640
+HALF = SIZE * RES / 2
+
+
+def raster_observed(x_from: float, x_to: float) -> np.ndarray:
+    """A raster whose density is non-zero for window x in [x_from, x_to) only."""
+    raster = np.zeros((4, SIZE, SIZE), dtype=np.float32)
+    c0, c1 = (int((x + HALF) / RES) for x in (x_from, x_to))
+    raster[1, :, c0:c1] = 0.5
+    return raster
+
+
+def straight_lane(x0: float = -12.0, x1: float = 12.0, y: float = 1.75) -> np.ndarray:
+    x = np.linspace(x0, x1, 49)
+    return np.column_stack([x, np.full_like(x, y), np.full_like(x, -1.8)])
+
+
+def test_observed_near_matches_a_brute_force_dilation():
+    rng = np.random.default_rng(0)
+    raster = np.zeros((4, 48, 48), dtype=np.float32)
+    raster[1][rng.random((48, 48)) < 0.01] = 1.0
+    occupied = np.argwhere(raster[1] > 0)
+    rows, cols = np.mgrid[:48, :48]
+    for reach in (0, 1, 3):
+        expected = np.zeros((48, 48), dtype=bool)
+        for r, c in occupied:
+            expected |= (np.abs(rows - r) <= reach) & (np.abs(cols - c) <= reach)
+        np.testing.assert_array_equal(observed_near(raster, reach), expected)
+
+
+def test_a_lane_ends_where_the_observed_ground_ends():
+    lanes, conf = keep_observed([straight_lane()], np.array([0.9]), raster_observed(0.0, 12.8),
+                                RES, reach_m=1.0)
+    assert len(lanes) == 1
+    np.testing.assert_allclose(conf, [0.9])
+    assert lanes[0][:, 0].min() >= -1.0 - 0.5  # reach 1 m plus one lane-point spacing
+    assert lanes[0][:, 0].max() == 12.0
+
+
+def test_gaps_inside_a_lane_stay_bridged_and_short_spans_go():
+    # observed at both ends, a 4 m unobserved gap in the middle (a row of cars, the blind ring
+    # of a single sweep): one lane, whole
+    raster = raster_observed(-12.8, 12.8)
+    c0, c1 = (int((x + HALF) / RES) for x in (-2.0, 2.0))
+    raster[1, :, c0:c1] = 0.0
+    lanes, conf = keep_observed([straight_lane()], np.array([0.8]), raster, RES, reach_m=0.5)
+    assert len(lanes) == 1 and len(lanes[0]) == 49
+    np.testing.assert_allclose(conf, [0.8])
+    # a supported span shorter than min_length is dropped with its lane
+    lanes, conf = keep_observed([straight_lane()], np.array([0.8]), raster_observed(11.0, 12.8),
+                                RES, reach_m=0.1, min_length_m=2.0)
+    assert lanes == [] and conf.size == 0
+    # a lane crossing a 2 m observed strip keeps that span (plus the reach), nothing beyond
+    lanes, _ = keep_observed([straight_lane(y=8.0)], np.array([0.8]), raster_observed(-1, 1),
+                             RES, reach_m=1.0)
+    assert len(lanes) == 1 and np.abs(lanes[0][:, 0]).max() <= 2.0 + 0.5
+    # over ground nobody saw at all, no lane
+    nothing = np.zeros((4, SIZE, SIZE), dtype=np.float32)
+    assert keep_observed([straight_lane()], np.array([0.8]), nothing, RES, 1.5)[0] == []
+
+
+def test_reach_zero_or_no_lanes_change_nothing():
+    lane = straight_lane()
+    lanes, conf = keep_observed([lane], np.array([0.7]), raster_observed(0, 1), RES, reach_m=0)
+    assert lanes[0] is lane and conf.tolist() == [0.7]
+    assert keep_observed([], np.zeros(0), raster_observed(0, 1), RES, 1.0)[0] == []
