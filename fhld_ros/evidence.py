@@ -16,21 +16,28 @@ import numpy as np
 DENSITY_CHANNEL = 1
 
 
-def observed_near(raster: np.ndarray, reach_px: int) -> np.ndarray:
-    """(H, W) bool: some observed cell lies within reach_px cells (Chebyshev distance)."""
+def _integral(raster: np.ndarray) -> np.ndarray:
+    """(H + 1, W + 1) counts of observed cells above and left of each corner."""
     occupied = raster[DENSITY_CHANNEL] > 0
-    if reach_px <= 0:
-        return occupied
-    h, w = occupied.shape
-    integral = np.zeros((h + 1, w + 1), dtype=np.int32)
+    integral = np.zeros((occupied.shape[0] + 1, occupied.shape[1] + 1), dtype=np.int32)
     np.cumsum(np.cumsum(occupied, axis=0, dtype=np.int32), axis=1, out=integral[1:, 1:])
-    rows = np.arange(h)
-    cols = np.arange(w)
+    return integral
+
+
+def _observed_count(integral: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+                    reach_px: int) -> np.ndarray:
+    """Observed cells within reach_px (Chebyshev) of each (row, col), from the integral."""
+    h, w = integral.shape[0] - 1, integral.shape[1] - 1
     r0, r1 = np.clip(rows - reach_px, 0, h), np.clip(rows + reach_px + 1, 0, h)
     c0, c1 = np.clip(cols - reach_px, 0, w), np.clip(cols + reach_px + 1, 0, w)
-    count = (integral[r1][:, c1] - integral[r0][:, c1] - integral[r1][:, c0]
-             + integral[r0][:, c0])
-    return count > 0
+    return integral[r1, c1] - integral[r0, c1] - integral[r1, c0] + integral[r0, c0]
+
+
+def observed_near(raster: np.ndarray, reach_px: int) -> np.ndarray:
+    """(H, W) bool: some observed cell lies within reach_px cells (Chebyshev distance)."""
+    h, w = raster.shape[1:]
+    rows, cols = np.meshgrid(np.arange(h), np.arange(w), indexing='ij')
+    return _observed_count(_integral(raster), rows, cols, max(reach_px, 0)) > 0
 
 
 def keep_observed(lanes: list[np.ndarray], confidences: np.ndarray, raster: np.ndarray,
@@ -43,14 +50,15 @@ def keep_observed(lanes: list[np.ndarray], confidences: np.ndarray, raster: np.n
     """
     if reach_m <= 0 or not lanes:
         return lanes, confidences
-    mask = observed_near(raster, int(round(reach_m / resolution_m)))
-    size = mask.shape[0]
+    integral = _integral(raster)  # box sums at the lane points only: no full-window mask
+    reach_px = int(round(reach_m / resolution_m))
+    size = raster.shape[1]
     half = size * resolution_m / 2
     kept, scores = [], []
     for lane, score in zip(lanes, np.asarray(confidences)):
         col = np.clip(((lane[:, 0] + half) / resolution_m).astype(int), 0, size - 1)
         row = np.clip(((lane[:, 1] + half) / resolution_m).astype(int), 0, size - 1)
-        supported = np.flatnonzero(mask[row, col])
+        supported = np.flatnonzero(_observed_count(integral, row, col, reach_px))
         if supported.size < 2:
             continue
         span = lane[supported[0]:supported[-1] + 1]
