@@ -375,6 +375,17 @@ def test_real_pjlab_pcd(tmp_path: Path) -> None:
     assert intensity[0] == 11 and 1 < intensity.max() <= 255  # the file's own 0-255 units
 
 
+def replayed_frames(tmp_path: Path) -> set[str]:
+    """Replay tmp_path/bag (3 sweeps) with the classical detector: /lanes for every sweep at
+    its stamp; returns the frames they are published in."""
+    stats = replay(tmp_path / 'bag', tmp_path / 'lanes', DetectorParams(detector='classical'),
+                   progress=False)
+    assert stats == {'sweeps': 3, 'dropped': 0, 'detections': 3}
+    lanes = bag_messages(tmp_path / 'lanes')['/lanes']
+    assert [s for s, _ in lanes] == [START_NS + k * 100_000_000 for k in range(3)]
+    return {msg.markers[0].header.frame_id for _, msg in lanes}
+
+
 def test_imported_pcd_bag_replays(tmp_path: Path) -> None:
     """Simulated Ouster sweeps (organised, padded, uint16 reflectivity) as binary_compressed
     PCDs plus their poses: the import replays with a /lanes message for every sweep."""
@@ -389,12 +400,7 @@ def test_imported_pcd_bag_replays(tmp_path: Path) -> None:
     assert [(c.height, c.width) for c in clouds] == [(32, 256)] * 3
     assert read_points(clouds[2]).tobytes() == expected_xyzi(sweeps[2].points,
                                                              'reflectivity').tobytes()
-    stats = replay(tmp_path / 'bag', tmp_path / 'lanes', DetectorParams(detector='classical'),
-                   progress=False)
-    assert stats == {'sweeps': 3, 'dropped': 0, 'detections': 3}
-    lanes = bag_messages(tmp_path / 'lanes')['/lanes']
-    assert [s for s, _ in lanes] == [START_NS + k * 100_000_000 for k in range(3)]
-    assert all(msg.markers[0].header.frame_id == 'odom' for _, msg in lanes)
+    assert replayed_frames(tmp_path) == {'odom'}
 
 
 def test_sweeps_without_odometry_each_get_their_lanes(tmp_path: Path) -> None:
@@ -406,9 +412,4 @@ def test_sweeps_without_odometry_each_get_their_lanes(tmp_path: Path) -> None:
         xyzi = expected_xyzi(sweep.points)
         xyzi.tofile(src / f'{sweep.index:06d}.bin')
     run_import(src, tmp_path / 'bag')
-    stats = replay(tmp_path / 'bag', tmp_path / 'lanes', DetectorParams(detector='classical'),
-                   progress=False)
-    assert stats == {'sweeps': 3, 'dropped': 0, 'detections': 3}
-    lanes = bag_messages(tmp_path / 'lanes')['/lanes']
-    assert [s for s, _ in lanes] == [START_NS + k * 100_000_000 for k in range(3)]
-    assert all(msg.markers[0].header.frame_id == 'lidar' for _, msg in lanes)
+    assert replayed_frames(tmp_path) == {'lidar'}

@@ -31,8 +31,10 @@ def read_bin(path: str | Path) -> np.ndarray:
     return np.frombuffer(raw, dtype=XYZI_DTYPE).copy()
 
 
-def _numeric_rows(path: Path, what: str) -> list[tuple[int, list[float]]]:
-    """(line number, numbers) of every non-blank line of a text file."""
+def _numeric_rows(path: Path, what: str, count: int, needs: str
+                  ) -> list[tuple[int, list[float]]]:
+    """(line number, numbers) of every non-blank line of a text file, each `count` numbers
+    (KittiError naming the line otherwise; `needs` says what the numbers are)."""
     try:
         text = path.read_text(encoding='ascii')
     except (OSError, UnicodeDecodeError) as exc:
@@ -46,17 +48,16 @@ def _numeric_rows(path: Path, what: str) -> list[tuple[int, list[float]]]:
         except ValueError:
             raise KittiError(f'{what} file {path}, line {number}: not numbers: '
                              f'{line.strip()[:60]!r}') from None
+        if len(rows[-1][1]) != count:
+            raise KittiError(f'{what} file {path}, line {number}: {len(rows[-1][1])} numbers, '
+                             f'{needs}')
     return rows
 
 
 def read_poses(path: str | Path) -> np.ndarray:
     """(N, 4, 4) transforms from a KITTI odometry poses file (12 numbers a line)."""
     path = Path(path)
-    rows = _numeric_rows(path, 'poses')
-    for number, values in rows:
-        if len(values) != 12:
-            raise KittiError(f'poses file {path}, line {number}: {len(values)} numbers, a 3x4 '
-                             'row-major transform needs 12')
+    rows = _numeric_rows(path, 'poses', 12, 'a 3x4 row-major transform needs 12')
     poses = np.tile(np.eye(4), (len(rows), 1, 1))
     if rows:
         poses[:, :3, :] = np.array([v for _, v in rows]).reshape(-1, 3, 4)
@@ -75,11 +76,7 @@ def read_poses(path: str | Path) -> np.ndarray:
 def read_times(path: str | Path) -> np.ndarray:
     """(N,) seconds from a KITTI times file (one number a line), strictly increasing."""
     path = Path(path)
-    rows = _numeric_rows(path, 'times')
-    for number, values in rows:
-        if len(values) != 1:
-            raise KittiError(f'times file {path}, line {number}: {len(values)} numbers, '
-                             'expected one time in seconds')
+    rows = _numeric_rows(path, 'times', 1, 'expected one time in seconds')
     times = np.array([v[0] for _, v in rows], dtype=np.float64)
     if not np.all(np.isfinite(times)):
         raise KittiError(f'times file {path} has non-finite values')
