@@ -22,7 +22,7 @@ setup(
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
-            'lane_detector = fhld_ros.ros.node:main',
+            'lane_detector = fhld_ros.ros.lane_detector:main',
             'fhld = fhld_ros.cli:main',
         ],
     },

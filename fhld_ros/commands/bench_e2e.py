@@ -105,7 +105,7 @@ class _BenchClient:
 
 def _start_node() -> subprocess.Popen:
     ros_args = ['--ros-args', *[a for p in PARAMS for a in ('-p', p)]] if PARAMS else []
-    return subprocess.Popen([sys.executable, '-m', 'fhld_ros.ros.node', *ros_args],
+    return subprocess.Popen([sys.executable, '-m', 'fhld_ros.ros.lane_detector', *ros_args],
                             env=dict(os.environ),
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 

@@ -22,6 +22,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallb
 from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2
@@ -234,6 +235,10 @@ def spin(node: Node) -> None:
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except rclpy_implementation.RCLError:
+        if node.context.ok():
+            raise
+        # a signal shut the context down while the executor was building its wait set
     finally:
         executor.shutdown()
         # Jazzy's Executor.shutdown() does not wait for callbacks still running in the pool;
@@ -245,14 +250,31 @@ def spin(node: Node) -> None:
 
 
 def main(args: list[str] | None = None) -> int:
+    """Run the node until a signal; 0 when stopped, 2 (one line) for bad parameters or weights.
+
+    A SIGINT or SIGTERM at any moment exits 0 without a traceback: rclpy shuts the context down,
+    and whatever rclpy call comes next fails; that failure is the stop, not an error. (Before
+    rclpy.init, fhld_ros/ros/lane_detector.py takes care of the signals.)
+    """
     rclpy.init(args=args)
     try:
         node = LaneDetectorNode()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        rclpy.try_shutdown()
+        return 0
     except (ValueError, CliError, ParameterException) as exc:
+        if not rclpy.ok():
+            return 0  # stopped by a signal while the node was being built
         # bad parameters or checkpoint: one clear line, no traceback
         print(f'lane_detector: error: {exc}', file=sys.stderr)
         rclpy.try_shutdown()
         return 2
+    except Exception:
+        # A signal while the node is being built makes whatever runs then fail (an rclpy call
+        # on the shut-down context, an extension's import interrupted mid-way): that is the stop.
+        if rclpy.ok():
+            raise
+        return 0
     # The executor's Python wait loop and the detection thread share the GIL; the model gives it
     # up in every torch op and, at the default 5 ms switch interval, waited that long to get it
     # back each time (measured: detections 2x slower in the node than alone).
@@ -267,7 +289,3 @@ def main(args: list[str] | None = None) -> int:
         node.destroy_node()
         rclpy.try_shutdown()
     return 0
-
-
-if __name__ == '__main__':
-    sys.exit(main())
