@@ -166,8 +166,15 @@ class LanePipeline:
         return self.odom_frame is not None
 
     def add_odometry(self, msg: Any) -> None:
-        self.odom_frame, self.odom_child = str(msg.header.frame_id), str(msg.child_frame_id)
-        self.odometry.add(stamp_to_ns(msg.header.stamp), odometry_to_matrix(msg))
+        """Buffer one odometry message. Raises ValueError (naming the problem), changing
+        nothing, for an empty frame_id (it would be the output frame) or a non-finite or
+        non-unit pose."""
+        frame = str(msg.header.frame_id)
+        if not frame:
+            raise ValueError('odometry has an empty frame_id')
+        pose = odometry_to_matrix(msg)  # validates before any state changes
+        self.odom_frame, self.odom_child = frame, str(msg.child_frame_id)
+        self.odometry.add(stamp_to_ns(msg.header.stamp), pose)
         self.counters['odometry'] += 1
         # sweeps that arrived before the odometry of their stamp go in now, in order
         while self.pending and self.pending[0][0] <= self.odometry.stamps[-1]:
@@ -186,15 +193,19 @@ class LanePipeline:
         return pose if cloud_frame == self.odom_child else pose @ self.lidar_to_base
 
     def add_cloud(self, msg: Any) -> dict[str, float]:
-        """Decode and insert one sweep. Raises ValueError (naming the problem) for bad input.
+        """Decode and insert one sweep. Raises ValueError (naming the problem) for bad input:
+        a malformed cloud, one over params.max_points, an empty frame_id.
 
         A sweep newer than the newest odometry waits (up to MAX_PENDING sweeps) for the
         odometry of its stamp, since clouds and odometry arrive on independent topics.
         """
         start = time.perf_counter()
-        xyz, intensity = read_xyzi(msg)
+        frame = str(msg.header.frame_id)
+        if not frame:  # it would become the output frame without odometry
+            raise ValueError('cloud has an empty frame_id')
+        xyz, intensity = read_xyzi(msg, max_points=self.params.max_points)
         decoded = time.perf_counter()
-        sweep = (stamp_to_ns(msg.header.stamp), str(msg.header.frame_id), xyz, intensity)
+        sweep = (stamp_to_ns(msg.header.stamp), frame, xyz, intensity)
         ahead = self.uses_odometry and sweep[0] > self.odometry.stamps[-1]
         first = (self.expect_odometry and not self.uses_odometry
                  and self.counters['clouds'] == 0)  # odometry may be near

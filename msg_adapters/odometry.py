@@ -8,6 +8,10 @@ import numpy as np
 
 from msg_adapters.family import MessageFamily
 
+# |q| may differ from 1 by float32 rounding or a driver's own normalisation, not by more: a
+# zero or scaled quaternion is a broken message, not a rotation to guess.
+QUATERNION_NORM_TOLERANCE = 1e-3
+
 
 def quaternion_to_matrix(q: Sequence[float]) -> np.ndarray:
     """(x, y, z, w) -> 3x3 rotation; the quaternion need not be normalised."""
@@ -55,16 +59,31 @@ def euler_to_matrix(x: float, y: float, z: float, roll: float, pitch: float,
 
 
 def pose_to_matrix(pose: Any) -> np.ndarray:
-    """geometry_msgs/Pose (any family) -> 4x4."""
+    """geometry_msgs/Pose (any family) -> 4x4.
+
+    ValueError for a non-finite position or a quaternion that is not finite or not of unit
+    norm (within QUATERNION_NORM_TOLERANCE).
+    """
     o, p = pose.orientation, pose.position
+    q = np.array((o.x, o.y, o.z, o.w), dtype=np.float64)
+    t = np.array((p.x, p.y, p.z), dtype=np.float64)
+    if not np.isfinite(t).all():
+        raise ValueError(f'pose position (x, y, z) = {tuple(t.tolist())} is not finite')
+    if not np.isfinite(q).all():
+        raise ValueError(f'pose orientation (x, y, z, w) = {tuple(q.tolist())} is not finite')
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+        raise ValueError(f'pose orientation (x, y, z, w) = {tuple(q.tolist())} has norm '
+                         f'{norm:.6g}, not 1 (tolerance {QUATERNION_NORM_TOLERANCE:g})')
     transform = np.eye(4)
-    transform[:3, :3] = quaternion_to_matrix((o.x, o.y, o.z, o.w))
-    transform[:3, 3] = (p.x, p.y, p.z)
+    transform[:3, :3] = quaternion_to_matrix(q)
+    transform[:3, 3] = t
     return transform
 
 
 def odometry_to_matrix(odom: Any) -> np.ndarray:
-    """Pose of odom.child_frame_id in odom.header.frame_id as a 4x4."""
+    """Pose of odom.child_frame_id in odom.header.frame_id as a 4x4; ValueError for a
+    non-finite or non-unit pose (see pose_to_matrix)."""
     return pose_to_matrix(odom.pose.pose)
 
 

@@ -23,6 +23,10 @@ DATATYPES: dict[int, np.dtype] = {
 }
 _CODES = {dtype.newbyteorder('='): code for code, dtype in DATATYPES.items()}
 INTENSITY_FIELDS = ('intensity', 'reflectivity')
+# Default bound on height*width: 4 x a 128 x 2048 sensor (dual returns, or a 5 Hz spin),
+# 50 MB of 48-byte points; the node's max_points parameter overrides it.
+DEFAULT_MAX_POINTS = 1 << 20
+MAX_FIELDS = 1024  # real clouds carry < 30; bounds the per-field Python work
 
 _log = logging.getLogger(__name__)
 _warned_no_intensity = False
@@ -38,26 +42,30 @@ def _buffer(data: Any) -> np.ndarray:
 
 
 def cloud_dtype(msg: Any) -> np.dtype:
-    """Structured dtype of one point: fields at their offsets, itemsize = point_step."""
+    """Structured dtype of one point: fields at their offsets, itemsize = point_step.
+
+    A field with count > 1 becomes one sub-array field (never one name per element: a hostile
+    count of 2**32 - 1 would build billions of names before any check).
+    """
     point_step = int(msg.point_step)
     order = '>' if msg.is_bigendian else '<'
+    if len(msg.fields) > MAX_FIELDS:
+        raise ValueError(f'PointCloud2 has {len(msg.fields)} fields, more than {MAX_FIELDS}')
     names, formats, offsets = [], [], []
     for field in msg.fields:
-        code, count = int(field.datatype), int(field.count)
+        name, code = str(field.name), int(field.datatype)
+        offset, count = int(field.offset), max(int(field.count), 1)  # count 0 means 1
         if code not in DATATYPES:
-            raise ValueError(f"PointCloud2 field '{field.name}' has unknown datatype {code}")
+            raise ValueError(f"PointCloud2 field '{name}' has unknown datatype {code}")
         base = DATATYPES[code].newbyteorder(order)
-        count = max(count, 1)
-        sub_names = [field.name] if count == 1 else [f'{field.name}_{k}' for k in range(count)]
-        for k, name in enumerate(sub_names):
-            offset = int(field.offset) + k * base.itemsize
-            if offset + base.itemsize > point_step:
-                raise ValueError(
-                    f"PointCloud2 field '{name}' ends at byte {offset + base.itemsize}, beyond "
-                    f'point_step {point_step}')
-            names.append(name)
-            formats.append(base)
-            offsets.append(offset)
+        end = offset + count * base.itemsize
+        if offset < 0 or end > point_step:  # also bounds count by point_step
+            raise ValueError(
+                f"PointCloud2 field '{name}' ends at byte {end} (offset {offset} + count "
+                f'{count} x {base.itemsize} bytes), beyond point_step {point_step}')
+        names.append(name)
+        formats.append(base if count == 1 else (base, (count,)))
+        offsets.append(offset)
     if len(set(names)) != len(names):
         dup = sorted({n for n in names if names.count(n) > 1})
         raise ValueError(f'PointCloud2 has duplicate field names: {", ".join(dup)}')
@@ -65,13 +73,22 @@ def cloud_dtype(msg: Any) -> np.dtype:
                      'itemsize': point_step})
 
 
-def _grid_view(msg: Any) -> np.ndarray:
-    """(height, width) structured view over the buffer, honouring row_step padding."""
-    dtype = cloud_dtype(msg)
+def _grid_view(msg: Any, max_points: int | None) -> np.ndarray:
+    """(height, width) structured view over the buffer, honouring row_step padding.
+
+    The header is checked against max_points and the buffer's length before the dtype is
+    built or anything is allocated, so a hostile header costs nothing.
+    """
     height, width = int(msg.height), int(msg.width)
     point_step, row_step = int(msg.point_step), int(msg.row_step)
+    if min(height, width, point_step, row_step) < 0:
+        raise ValueError(f'PointCloud2 has a negative size: height {height}, width {width}, '
+                         f'point_step {point_step}, row_step {row_step}')
+    if max_points is not None and height * width > max_points:
+        raise ValueError(f'PointCloud2 has {height} x {width} = {height * width} points, more '
+                         f'than max_points {max_points}')
     if height * width == 0:
-        return np.zeros((0, 0), dtype=dtype)
+        return np.zeros((0, 0), dtype=cloud_dtype(msg))
     if row_step < width * point_step:
         raise ValueError(f'PointCloud2 row_step {row_step} is smaller than width*point_step '
                          f'{width * point_step}')
@@ -79,6 +96,7 @@ def _grid_view(msg: Any) -> np.ndarray:
     if buf.size < row_step * height:
         raise ValueError(f'PointCloud2 data has {buf.size} bytes, expected row_step*height = '
                          f'{row_step * height}')
+    dtype = cloud_dtype(msg)
     return np.ndarray((height, width), dtype=dtype, buffer=buf, strides=(row_step, point_step))
 
 
@@ -98,9 +116,13 @@ def _xyz_view(grid: np.ndarray) -> np.ndarray | None:
                       strides=(*grid.strides, 4))
 
 
-def read_points(msg: Any) -> np.ndarray:
-    """All points as a structured array of shape (height*width,), native byte order."""
-    grid = _grid_view(msg)
+def read_points(msg: Any, *, max_points: int | None = DEFAULT_MAX_POINTS) -> np.ndarray:
+    """All points as a structured array of shape (height*width,), native byte order.
+
+    A field with count > 1 is a sub-array field. ValueError names a malformed or oversized
+    (height*width > max_points; None = no bound) cloud.
+    """
+    grid = _grid_view(msg, max_points)
     points = grid.reshape(-1)  # copies only when rows are padded
     if not msg.is_bigendian:
         return points
@@ -112,18 +134,25 @@ def read_points(msg: Any) -> np.ndarray:
     return points.astype(native)
 
 
-def read_xyzi(msg: Any) -> tuple[np.ndarray, np.ndarray]:
+def read_xyzi(msg: Any, *, max_points: int | None = DEFAULT_MAX_POINTS
+              ) -> tuple[np.ndarray, np.ndarray]:
     """Finite, returned points: xyz float32 (N, 3) and raw-scale intensity float32 (N,).
 
     Intensity comes from `intensity`, else `reflectivity` (any numeric type); all-zero points
-    are no-returns of organised drivers and are dropped like NaN ones.
+    are no-returns of organised drivers and are dropped like NaN ones. ValueError names a
+    malformed cloud or one of more than max_points points (None = no bound).
     """
     global _warned_no_intensity
-    grid = _grid_view(msg)
+    grid = _grid_view(msg, max_points)
     names = grid.dtype.names or ()
     missing = [axis for axis in 'xyz' if axis not in names]
     if missing:
         raise ValueError(f'PointCloud2 has no {"/".join(missing)} field')
+    intensity_name = next((n for n in INTENSITY_FIELDS if n in names), None)
+    for name in ('x', 'y', 'z', intensity_name):
+        if name is not None and grid.dtype.fields[name][0].subdtype is not None:
+            raise ValueError(f"PointCloud2 field '{name}' has count "
+                             f'{grid.dtype.fields[name][0].shape[0]}, expected 1')
     count = grid.size
     xyz = _xyz_view(grid)
     if xyz is not None:  # x, y, z packed float32: one strided copy
@@ -132,7 +161,6 @@ def read_xyzi(msg: Any) -> tuple[np.ndarray, np.ndarray]:
         xyz = np.empty((count, 3), dtype=np.float32)
         for k, axis in enumerate('xyz'):
             xyz[:, k] = _native(grid[axis]).reshape(-1)
-    intensity_name = next((n for n in INTENSITY_FIELDS if n in names), None)
     if intensity_name is None:
         if not _warned_no_intensity:
             _log.warning('PointCloud2 has neither intensity nor reflectivity: using zeros')

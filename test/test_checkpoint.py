@@ -1,9 +1,15 @@
 """Checkpoint files: round trip with weights_only=True and one clear error per failure mode."""
 from __future__ import annotations
 
+import dataclasses
+import os
+import time
+
 import pytest
 import torch
 
+import fhld_ros.model.checkpoint as checkpoint_module
+import fhld_ros.model.config as config_module
 from fhld_ros.model.checkpoint import (
     FORMAT,
     CheckpointError,
@@ -90,6 +96,22 @@ def test_pickled_objects_are_refused(tmp_path):
         load_checkpoint(path)
 
 
+def test_code_executing_pickle_is_named_and_never_run(tmp_path):
+    # torch 2.13 words this refusal 'unsupported GLOBAL posix.mkdir whose module ...'
+    canary = tmp_path / 'ran'
+
+    class RunsCode:
+        def __reduce__(self):
+            return os.mkdir, (str(canary),)
+
+    path = tmp_path / 'evil.pt'
+    torch.save({'format': FORMAT, 'config': RunsCode()}, path)
+    with pytest.raises(CheckpointError, match=r'holds Python objects \((posix|nt)\.mkdir\), not '
+                                              'plain data: an unsafe pickle that could run code'):
+        load_checkpoint(path)
+    assert not canary.exists()
+
+
 def edit_payload(path, **changes):
     payload = torch.load(path, weights_only=True)
     for key, value in changes.items():
@@ -141,3 +163,39 @@ def test_checkpoint_from_before_a_config_field_existed(tmp_path):
     del payload['config']['stem_kernel']  # written before the field was added
     torch.save(payload, path)
     assert load_checkpoint(path).config.stem_kernel == 7
+
+
+@pytest.mark.parametrize('change,message', [
+    ({'d_model': 2 ** 20}, r'd_model must be an integer in \[1, 4096\], got 1048576'),
+    ({'ffn_dim': 10 ** 7}, 'ffn_dim must be an integer in'),
+    ({'num_queries': 10 ** 6}, r'num_queries must be an integer in \[1, 1000\]'),
+    ({'enc_layers': 1000}, r'enc_layers must be an integer in \[0, 64\]'),
+    ({'size_px': 2 ** 16}, r'size_px must be an integer in \[32, 4096\]'),
+    ({'widths': [8, 16, 32, 2 ** 20]}, r'widths must be 4 integers in \[1, 4096\]'),
+    ({'roi_size': 10 ** 4}, 'roi_size must be an integer in'),
+    ({'cell_px': 256}, 'cell_px 256 exceeds size_px 128'),
+    ({'d_model': '64'}, "d_model must be an integer in .*got '64'"),
+    ({'d_model': 64.0}, 'd_model must be an integer in .*got 64.0'),
+    ({'resolution_m': float('nan')}, 'resolution_m must be a finite number'),
+    ({'adaptive_axis': 1}, 'adaptive_axis must be true or false'),
+])
+def test_oversized_or_mistyped_configs_are_refused_before_a_model_is_built(
+        saved, monkeypatch, change, message):
+    # issue #17: d_model = 2**20 asked for 13 TB; the config is refused before any model exists
+    _, path = saved
+    edit_payload(path, config=change)
+
+    def no_model(_config):
+        raise AssertionError('a model was built from an unusable config')
+
+    monkeypatch.setattr(checkpoint_module, 'FhldDetector', no_model)
+    start = time.perf_counter()
+    with pytest.raises(CheckpointError, match=f'unusable config: {message}'):
+        load_checkpoint(path)
+    assert time.perf_counter() - start < 5
+
+
+def test_every_config_field_is_bounded():
+    assert {f.name for f in dataclasses.fields(FhldConfig)} == (
+        set(config_module._INT_BOUNDS) | set(config_module._FLOAT_FIELDS)
+        | set(config_module._BOOL_FIELDS) | {'widths'})

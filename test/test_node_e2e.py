@@ -47,8 +47,8 @@ def scene(tmp_path_factory):
 def node_process(ros_env):
     node = subprocess.Popen(
         [sys.executable, '-m', 'fhld_ros.ros.lane_detector', '--ros-args',
-         '-p', f'detector:={DETECTOR}', '-p', 'use_sim_time:=true'], env=ros_env, stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT, text=True)
+         '-p', f'detector:={DETECTOR}', '-p', 'use_sim_time:=true'],
+        env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     yield node
     if node.poll() is None:
         node.kill()

@@ -61,3 +61,37 @@ def test_slerp_takes_the_short_way_round():
     pose1 = euler_to_matrix(0, 0, 0, 0, 0, -np.pi + 0.1)
     mid = interpolate_pose(0.5, 0.0, pose0, 1.0, pose1)
     np.testing.assert_allclose(mid[:3, 0], [-1, 0, 0], atol=1e-9)
+
+
+def _odometry_with(family, q=None, t=None):
+    odom = make_odometry(family, family.header(5, 'odom'), 'lidar', np.eye(4))
+    o, p = odom.pose.pose.orientation, odom.pose.pose.position
+    if q is not None:
+        o.x, o.y, o.z, o.w = map(float, q)
+    if t is not None:
+        p.x, p.y, p.z = map(float, t)
+    return odom
+
+
+@pytest.mark.parametrize('family', [rosbags_family(), rclpy_family()], ids=lambda f: f.name)
+@pytest.mark.parametrize('q,t,message', [
+    ((np.nan, 0, 0, 1), None, r'orientation \(x, y, z, w\) = \(nan, 0.0, 0.0, 1.0\) is not '
+     'finite'),
+    ((0, 0, 0, np.inf), None, 'orientation .* is not finite'),
+    ((0, 0, 0, 0), None, 'has norm 0, not 1'),  # "no orientation" from some drivers
+    ((0, 0, 0, 2), None, 'has norm 2, not 1'),
+    ((0, 0, 0.6, 0.802), None, 'has norm 1.0016, not 1'),
+    (None, (1, np.nan, 0), r'position \(x, y, z\) = \(1.0, nan, 0.0\) is not finite'),
+    (None, (-np.inf, 0, 0), 'position .* is not finite'),
+])
+def test_non_finite_or_non_unit_poses_are_refused(family, q, t, message):
+    with pytest.raises(ValueError, match=message):
+        odometry_to_matrix(_odometry_with(family, q, t))
+
+
+def test_quaternions_within_rounding_of_unit_norm_are_accepted():
+    # float32-rounded or slightly denormalised quaternions from real drivers still pass
+    q = np.array([0.0, 0.0, 0.6, 0.8]) * (1 + 9e-4)
+    matrix = odometry_to_matrix(_odometry_with(rosbags_family(), q, (1, 2, 3)))
+    np.testing.assert_allclose(matrix[:3, :3].T @ matrix[:3, :3], np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(matrix[:3, 3], [1, 2, 3])

@@ -57,3 +57,14 @@ def test_wildcard_section_and_lists_as_tuples(tmp_path):
                         '    lidar_to_base: [1.0, 0.0, 2.0, 0.0, 0.0, 0.0]\n')
     assert load_params_yaml(wildcard) == DetectorParams(
         rate_hz=5.0, lidar_to_base=(1.0, 0.0, 2.0, 0.0, 0.0, 0.0))
+
+
+@pytest.mark.parametrize('value', [0, -1, True, 1.5, '1000'])
+def test_max_points_must_be_a_positive_integer(value):
+    with pytest.raises(ValueError, match='max_points must be an integer > 0'):
+        DetectorParams(max_points=value)
+
+
+def test_max_points_default_holds_a_128_by_2048_sensor_with_margin():
+    assert DetectorParams().max_points == 2 ** 20 >= 4 * 128 * 2048
+    assert DetectorParams(max_points=128 * 2048).max_points == 262144

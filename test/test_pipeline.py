@@ -135,3 +135,43 @@ def test_a_cloud_ahead_of_its_odometry_waits_for_it():
     for k in range(2, 6):
         pipeline.add_cloud(_cloud(k * 100_000_000))
     assert len(pipeline.pending) == 3 and pipeline.counters['clouds'] == 2
+
+
+def test_an_empty_cloud_frame_id_is_refused_and_changes_nothing():
+    # issue #17: /lanes went out with frame_id '' for such clouds without odometry
+    pipeline = LanePipeline(DetectorParams(size_px=64, resolution_m=0.5), FixedLanes([], []),
+                            expect_odometry=False)
+    with pytest.raises(ValueError, match='cloud has an empty frame_id'):
+        pipeline.add_cloud(_cloud(100_000_000, frame=''))
+    assert pipeline.counters['clouds'] == 0 and not pipeline.pending
+    assert pipeline.detect() is None
+    pipeline.add_cloud(_cloud(200_000_000, frame='os_lidar'))
+    assert pipeline.detect().frame_id == 'os_lidar'
+
+
+def test_bad_odometry_is_refused_before_it_changes_anything():
+    # NaN quaternions were accepted, then every cloud was refused against the NaN pose
+    pipeline = LanePipeline(DetectorParams(size_px=64, resolution_m=0.5), FixedLanes([], []),
+                            expect_odometry=False)
+    nan = _odom(100_000_000, np.eye(4))
+    nan.pose.pose.orientation.w = float('nan')
+    empty = make_odometry(FAMILY, FAMILY.header(100_000_000, ''), 'lidar', np.eye(4))
+    unit = _odom(100_000_000, np.eye(4))
+    unit.pose.pose.orientation.w = 0.5
+    for msg, message in ((nan, 'is not finite'), (empty, 'odometry has an empty frame_id'),
+                         (unit, 'has norm 0.5, not 1')):
+        with pytest.raises(ValueError, match=message):
+            pipeline.add_odometry(msg)
+    assert not pipeline.uses_odometry and pipeline.counters['odometry'] == 0
+    pipeline.add_cloud(_cloud(100_000_000))  # per sweep, in the cloud frame
+    out = pipeline.detect()
+    assert out.frame_id == 'lidar' and np.isfinite(out.outline).all()
+
+
+def test_max_points_bounds_the_clouds_the_pipeline_decodes():
+    params = DetectorParams(size_px=64, resolution_m=0.5, max_points=200)
+    pipeline = LanePipeline(params, FixedLanes([], []), expect_odometry=False)
+    with pytest.raises(ValueError, match='201 points, more than max_points 200'):
+        pipeline.add_cloud(_cloud(100_000_000, n=201))
+    pipeline.add_cloud(_cloud(200_000_000, n=200))
+    assert pipeline.counters['clouds'] == 1

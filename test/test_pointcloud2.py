@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import array
+import time
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from msg_adapters.pointcloud2 import (
     DATATYPES,
     FLOAT32,
     FLOAT64,
+    UINT8,
     UINT16,
     create_cloud,
     read_points,
@@ -112,15 +114,19 @@ def test_no_intensity_field_gives_zeros_and_warns_once(caplog):
     assert sum('neither intensity nor reflectivity' in r.message for r in caplog.records) == 1
 
 
-def test_count_greater_than_one_expands_fields():
-    dtype = np.dtype([('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('normal', '<f4', (3,))])
+@pytest.mark.parametrize('order', ['<', '>'])
+def test_count_greater_than_one_is_a_sub_array_field(order):
+    dtype = np.dtype([('x', f'{order}f4'), ('y', f'{order}f4'), ('z', f'{order}f4'),
+                      ('normal', f'{order}f4', (3,))])
     points = np.zeros(4, dtype=dtype)
+    points['x'] = 1
     points['normal'] = np.arange(12).reshape(4, 3)
     msg = _cloud(rosbags_family(), points)
-    assert msg.fields[3].count == 3
+    assert msg.fields[3].count == 3 and msg.is_bigendian == (order == '>')
     back = read_points(msg)
-    assert back.dtype.names == ('x', 'y', 'z', 'normal_0', 'normal_1', 'normal_2')
-    np.testing.assert_array_equal(back['normal_2'], [2, 5, 8, 11])
+    assert back.dtype.names == ('x', 'y', 'z', 'normal')
+    np.testing.assert_array_equal(back['normal'], np.arange(12).reshape(4, 3))
+    assert read_xyzi(msg)[0].shape == (4, 3)
 
 
 @pytest.mark.parametrize('family', FAMILIES, ids=lambda f: f.name)
@@ -156,10 +162,49 @@ XYZ = [('x', 0, FLOAT32), ('y', 4, FLOAT32), ('z', 8, FLOAT32)]
     (lambda: _raw_msg(XYZ[:2]), 'no z field'),
     (lambda: _raw_msg(XYZ + [('y', 12, FLOAT32)]), 'duplicate field names: y'),
     (lambda: _raw_msg(XYZ, row_step=8), 'row_step 8 is smaller'),
+    (lambda: _raw_msg(XYZ + [('t', 12, UINT16, 3)]),
+     r"'t' ends at byte 18 \(offset 12 \+ count 3 x 2 bytes\), beyond point_step 16"),
+    (lambda: _raw_msg([('x', 0, FLOAT32, 3), ('y', 4, FLOAT32), ('z', 8, FLOAT32)]),
+     "field 'x' has count 3, expected 1"),
+    (lambda: _raw_msg(XYZ + [('intensity', 12, UINT16, 2)]), "'intensity' has count 2"),
+    (lambda: _raw_msg(XYZ + [(f'f{k}', 12, UINT8) for k in range(1100)]), '1103 fields'),
+    (lambda: _raw_msg(XYZ, point_step=-16, row_step=32), 'negative size'),
 ])
 def test_malformed_clouds_raise_clear_errors(msg, message):
     with pytest.raises(ValueError, match=message.replace('*', r'\*')):
         read_xyzi(msg())
+
+
+@pytest.mark.parametrize('count', [2 ** 32 - 1, 20_000_000])
+def test_a_hostile_field_count_is_refused_at_once(count):
+    # issue #17: one dtype name per count hung the node, then it was killed for memory
+    msg = _raw_msg(XYZ + [('pad', 12, UINT8, count)], width=1)
+    start = time.perf_counter()
+    with pytest.raises(ValueError, match=f"field 'pad' ends at byte {12 + count} .*count "
+                                         f'{count} x 1 bytes.*beyond point_step 16'):
+        read_xyzi(msg)
+    with pytest.raises(ValueError, match=f'count {count}'):
+        read_points(msg)
+    assert time.perf_counter() - start < 0.1
+
+
+def test_clouds_over_max_points_are_refused_from_the_header():
+    # 2**40 points claimed over 32 bytes of data: refused before the buffer or dtype is looked
+    # at, so nothing is allocated
+    huge = _raw_msg(XYZ + [('pad', 12, UINT8, 2 ** 32 - 1)], width=2 ** 20, height=2 ** 20,
+                    data_len=32)
+    start = time.perf_counter()
+    with pytest.raises(ValueError, match=f'1048576 x 1048576 = {2 ** 40} points, more than '
+                                         f'max_points {pc2.DEFAULT_MAX_POINTS}'):
+        read_xyzi(huge)
+    assert time.perf_counter() - start < 0.1
+    msg = _cloud(rosbags_family(), _xyzi_points(6 * 50), height=6)
+    with pytest.raises(ValueError, match='6 x 50 = 300 points, more than max_points 299'):
+        read_xyzi(msg, max_points=299)
+    with pytest.raises(ValueError, match='more than max_points 299'):
+        read_points(msg, max_points=299)
+    assert read_xyzi(msg, max_points=300)[0].shape == (300, 3)
+    assert read_points(msg, max_points=None).shape == (300,)
 
 
 def test_every_datatype_reads_back():

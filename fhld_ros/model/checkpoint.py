@@ -8,6 +8,7 @@ the code, a raster other than the caller's) raises CheckpointError with one clea
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import tempfile
 from dataclasses import dataclass, field
@@ -25,6 +26,9 @@ FORMAT_VERSION = 1
 # Config fields added after checkpoints existed, with the value those checkpoints were built
 # with (inference-only fields such as local_refine_steps take the current default instead).
 LEGACY_CONFIG_DEFAULTS: dict[str, Any] = {'stem_kernel': 7}
+# torch's weights_only refusal of a pickled class or callable; its wording varies between
+# releases ('Unsupported global: GLOBAL x.Y', 'unsupported GLOBAL posix.system whose ...').
+_UNSAFE_GLOBAL = re.compile(r'unsupported global:?\s*(?:global\s+)?([\w.]+)', re.IGNORECASE)
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent.parent / 'checkpoints' / 'fhld.pt'
 
 
@@ -82,9 +86,12 @@ def load_checkpoint(path: str | os.PathLike, expect: FhldConfig | None = None,
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:  # zip, pickle and tensor errors all mean the same to the user
-        if 'Unsupported global' in str(exc):  # a class weights_only would have to import
-            raise CheckpointError(f'checkpoint {path} holds Python objects, not plain data; '
-                                  'refusing to unpickle it (weights_only=True)') from exc
+        unsafe = _UNSAFE_GLOBAL.search(str(exc))
+        if unsafe:  # a class or function (os.system, ...) weights_only would have to import
+            raise CheckpointError(
+                f'checkpoint {path} holds Python objects ({unsafe.group(1)}), not plain data: '
+                'an unsafe pickle that could run code; refusing to unpickle it '
+                '(weights_only=True)') from exc
         first = next((line.strip() for line in str(exc).splitlines() if line.strip()), '')
         if first.startswith('Weights only load failed'):  # torch's preamble, not the cause
             first = 'invalid pickle data'

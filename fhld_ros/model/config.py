@@ -7,6 +7,7 @@ Pixel quantities (cell size r, anchor noise) are in raster pixels of the configu
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -102,13 +103,57 @@ class FhldConfig:
         return from_dict(cls, data, where='the model config')
 
     def validate(self) -> None:
+        """ValueError naming the first unusable value. Every size is bounded (generously: far
+        above any real model) so a hostile checkpoint config is refused before a model is
+        built (d_model = 2**20 would ask for terabytes)."""
+        for name, (low, high) in _INT_BOUNDS.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+                raise ValueError(f'{name} must be an integer in [{low}, {high}], got {value!r}')
+        for name in _FLOAT_FIELDS:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
+                    math.isfinite(value) and value >= 0):
+                raise ValueError(f'{name} must be a finite number >= 0, got {value!r}')
+        for name in _BOOL_FIELDS:
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f'{name} must be true or false, got {getattr(self, name)!r}')
+        widths = self.widths
+        if not isinstance(widths, (tuple, list)) or len(widths) != 4 or not all(
+                isinstance(w, int) and not isinstance(w, bool) and 1 <= w <= MAX_WIDTH
+                for w in widths):
+            raise ValueError(f'widths must be 4 integers in [1, {MAX_WIDTH}], got {widths!r}')
         if self.size_px % 32:
             raise ValueError(f'size_px must be a multiple of 32, got {self.size_px}')
         if self.local_stride not in (4, 8, 16, 32):
             raise ValueError(f'local_stride must be 4, 8, 16 or 32, got {self.local_stride}')
-        if len(self.widths) != 4:
-            raise ValueError(f'widths must have 4 stages, got {self.widths}')
-        if self.local_refine_steps < 0:
-            raise ValueError(f'local_refine_steps must be >= 0, got {self.local_refine_steps}')
         if self.d_model % self.n_heads:
             raise ValueError('d_model must be divisible by n_heads')
+        if not self.resolution_m > 0:
+            raise ValueError(f'resolution_m must be > 0, got {self.resolution_m}')
+        if not self.dropout < 1:
+            raise ValueError(f'dropout must be < 1, got {self.dropout}')
+        if self.cell_px > self.size_px:
+            raise ValueError(f'cell_px {self.cell_px} exceeds size_px {self.size_px}')
+        if self.infer_min_cells > self.infer_max_cells:
+            raise ValueError('infer_min_cells must be <= infer_max_cells')
+
+
+MAX_WIDTH = 4096  # channels of any layer
+# Inclusive bounds of the integer fields: generous, far above any real model.
+_INT_BOUNDS: dict[str, tuple[int, int]] = {
+    'size_px': (32, 4096), 'in_channels': (1, 64), 'blocks_per_stage': (1, 64),
+    'stem_kernel': (1, 15), 'backbone_attention_layers': (0, 64), 'd_model': (1, MAX_WIDTH),
+    'n_heads': (1, 256), 'ffn_dim': (1, 4 * MAX_WIDTH), 'enc_layers': (0, 64),
+    'dec_layers': (1, 64), 'num_queries': (1, 1000), 'local_stride': (4, 32),
+    'local_channels': (1, MAX_WIDTH), 'roi_size': (1, 64), 'roi_sampling': (1, 16),
+    'local_hidden': (1, MAX_WIDTH), 'cell_px': (1, 4096), 'cells_per_lane': (1, 1000),
+    'infer_min_cells': (1, 1000), 'infer_max_cells': (1, 1000), 'local_refine_steps': (0, 64),
+    'lsm_warmup': (0, 10**9), 'gt_points': (2, 10_000),
+}
+_FLOAT_FIELDS = ('resolution_m', 'dropout', 'negative_ratio', 'noise_px', 'infer_spacing_px',
+                 'curvature_ref', 'min_segment_frac', 'bar_width_m', 'local_score_threshold',
+                 'lambda1', 'lambda2', 'lambda3', 'no_lane_weight', 'z_weight',
+                 'match_class_weight', 'match_terminal_weight')
+_BOOL_FIELDS = ('adaptive_axis', 'shape_matching', 'smoothness_loss', 'anchor_noise',
+                'anchors_on_gt', 'aux_loss')

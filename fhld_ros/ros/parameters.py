@@ -54,6 +54,10 @@ class DetectorParams:
     max_sweeps: int = documented(10, 'at most this many sweeps are accumulated (memory bound)')
     rate_hz: float = documented(
         10.0, 'detection rate; the timer runs on ROS time (use_sim_time for bags)')
+    max_points: int = documented(
+        1 << 20, 'clouds of more than this many points (height x width, read from the header '
+        'before anything is allocated) are refused as bad clouds; 1048576 = 4 x a 128 x 2048 '
+        'sensor')
     intensity_scale: float = documented(
         0.0, 'full scale of the intensity field; 0 = infer per sweep (1, 255, 65535)')
     input_reliability: str = documented(
@@ -82,6 +86,9 @@ class DetectorParams:
             problems.append('local_refine_steps must be an integer >= 0')
         if len(self.lidar_to_base) != 6:
             problems.append('lidar_to_base must be [x, y, z, roll, pitch, yaw]')
+        points = self.max_points
+        if isinstance(points, bool) or not (isinstance(points, int) and points > 0):
+            problems.append('max_points must be an integer > 0')
         if not self.evidence_reach_m >= 0:
             problems.append('evidence_reach_m must be >= 0')
         if not (self.rate_hz > 0 and self.accumulate_sec >= 0 and self.max_sweeps >= 1
