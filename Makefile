@@ -31,7 +31,7 @@ test-fast: venv
 
 # simulate a drive, detect lanes, score them, draw out/demo/demo.png (see README)
 demo: venv
-	$(VENV)/bin/fhld demo --out out/demo
+	$(VENV)/bin/fhld demo --out out/demo --overwrite
 
 bench: venv
 	$(VENV)/bin/fhld bench

@@ -346,12 +346,17 @@ def test_kitti_and_argument_errors(tmp_path: Path) -> None:
 def test_output_paths_refused(tmp_path: Path) -> None:
     (src := tmp_path / 'scans').mkdir()
     expected_xyzi(known_cloud(10)).tofile(src / '0.bin')
-    for out, message in ((src, 'is SRC or inside it'), (src / 'bag', 'is SRC or inside it'),
-                         (tmp_path, 'contains SRC'), (src / '0.bin', 'is SRC or inside it')):
+    (tmp_path / 'poses.txt').write_text('1 0 0 0 0 1 0 0 0 0 1 0\n')
+    for out, message in ((src, 'is SRC'), (src / 'bag', 'is inside SRC'),
+                         (tmp_path, 'contains SRC'), (src / '0.bin', 'is inside SRC')):
         with pytest.raises(CliError, match=message):
             run_import(src, out, '--overwrite')
     with pytest.raises(CliError, match='contains SRC'):
         run_import(src / '0.bin', src, '--overwrite')
+    with pytest.raises(CliError, match='is --poses'):
+        run_import(src / '0.bin', tmp_path / 'poses.txt', '--poses', tmp_path / 'poses.txt',
+                   '--overwrite')
+    assert (tmp_path / 'poses.txt').read_text() == '1 0 0 0 0 1 0 0 0 0 1 0\n'
     (other := tmp_path / 'other').mkdir()
     (other / 'keep.txt').write_text('not a bag')
     with pytest.raises(CliError, match='exists and is not a rosbag2 bag'):

@@ -5,7 +5,8 @@ order: 2.pcd before 10.pcd; a folder mixing both kinds is refused, since their o
 intensity units would be a guess). The bag has /points (sensor_msgs/PointCloud2: float32 x, y,
 z, intensity in the file's own units, organised when the PCD is) and, with --poses, /odom
 (nav_msgs/Odometry: the sensor's pose, header.frame_id --odom-frame, child_frame_id the cloud
-frame, stamped like its sweep), so `fhld replay` needs no extrinsic.
+frame, stamped like its sweep), so `fhld replay` needs no extrinsic. OUT_BAG follows bagio's
+output rule (refused when it exists without --overwrite, is not a bag, or overlaps an input).
 """
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from fhld_ros.bagio import BagWriter
+from fhld_ros.bagio import BagWriter, check_output
 from fhld_ros.errors import CliError
 from fhld_ros.importing import kitti
 from fhld_ros.importing.pcd import IDENTITY_VIEWPOINT, read_pcd, to_xyzi
@@ -48,7 +49,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='KITTI calib.txt: --poses are KITTI camera-0 poses; converted to '
                         'LiDAR poses with its Tr (velodyne -> camera)')
     parser.add_argument('--odom-frame', default='odom', help='/odom header frame (default odom)')
-    parser.add_argument('--overwrite', action='store_true', help='replace an existing OUT_BAG')
+    parser.add_argument('--overwrite', action='store_true',
+                        help='replace an existing OUT_BAG (only a rosbag2 bag folder)')
     parser.add_argument('--quiet', action='store_true', help='no progress bar')
 
 
@@ -75,23 +77,6 @@ def collect_sources(src: Path) -> tuple[list[Path], str]:
     if not found[suffix]:
         raise CliError(f'{src} has no .pcd or .bin files')
     return found[suffix], suffix
-
-
-def check_output(src: Path, out: Path, overwrite: bool) -> None:
-    """Refuse an output that would replace, or sit inside, the input or anything not a bag."""
-    src_r, out_r = src.resolve(), out.resolve()
-    if out_r == src_r or src_r in out_r.parents:
-        raise CliError(f'OUT_BAG {out} is SRC or inside it: write the bag elsewhere')
-    if out_r in src_r.parents:
-        raise CliError(f'OUT_BAG {out} contains SRC {src}: write the bag elsewhere')
-    if out.exists() or out.is_symlink():
-        if not overwrite:
-            raise CliError(f'{out} exists (use --overwrite to replace it)')
-        if not (out.is_dir() and not out.is_symlink() and (out / 'metadata.yaml').is_file()):
-            raise CliError(f'{out} exists and is not a rosbag2 bag (no metadata.yaml): '
-                           'not replaced')
-    if not out_r.parent.is_dir():
-        raise CliError(f'cannot write {out}: directory {out_r.parent} does not exist')
 
 
 def sweep_stamps(count: int, args: argparse.Namespace) -> np.ndarray:
@@ -149,11 +134,13 @@ def read_sweep(path: Path, suffix: str) -> tuple[np.ndarray, int, bool]:
 def run(args: argparse.Namespace) -> int:
     _check_frames(args)
     files, suffix = collect_sources(args.src)
-    check_output(args.src, args.out_bag, args.overwrite)
+    inputs = {'SRC': args.src, '--poses': args.poses, '--times': args.times,
+              '--kitti-calib': args.kitti_calib}
+    check_output(args.out_bag, args.overwrite, inputs)
     stamps = sweep_stamps(len(files), args)
     poses = sensor_poses(len(files), args)
     points_total, moved = 0, 0
-    with BagWriter(args.out_bag, overwrite=args.overwrite) as bag:
+    with BagWriter(args.out_bag, args.overwrite, inputs) as bag:
         family = bag.family
         cloud_cls = family.cls('sensor_msgs/msg/PointCloud2')
         for k, path in enumerate(tqdm(files, unit='sweep', desc='import', file=sys.stderr,

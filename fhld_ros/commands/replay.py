@@ -2,6 +2,8 @@
 
 The detection timer runs on sensor stamps: it fires every 1/rate_hz seconds of bag time, so a
 replay gives the same lanes on any machine (deterministic), unlike a live run that may skip.
+OUT_BAG follows bagio's output rule: an existing one is refused unless --overwrite (then only a
+bag folder is replaced), and one equal to, inside or containing IN_BAG always.
 """
 from __future__ import annotations
 
@@ -12,7 +14,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from fhld_ros.bagio import BagWriter, read_messages, topic_counts
+from fhld_ros.bagio import BagWriter, check_output, read_messages, topic_counts
 from fhld_ros.detectors import make_detector
 from fhld_ros.errors import CliError
 from fhld_ros.pipeline import LanePipeline
@@ -31,12 +33,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--checkpoint', help='FHLD weights (default: the shipped checkpoint)')
     parser.add_argument('--detector', choices=['fhld', 'classical'],
                         help='detector back-end (default: the parameter, fhld)')
+    parser.add_argument('--overwrite', action='store_true',
+                        help='replace an existing OUT_BAG (only a rosbag2 bag folder)')
     parser.add_argument('--quiet', action='store_true', help='no progress bar')
 
 
 def replay(in_bag: Path, out_bag: Path, params: DetectorParams, points_topic: str = '/points',
-           odom_topic: str = '/odom', progress: bool = True) -> dict[str, int]:
+           odom_topic: str = '/odom', progress: bool = True,
+           overwrite: bool = False) -> dict[str, int]:
     """Run the pipeline over in_bag and write its outputs to out_bag; returns counters."""
+    inputs = {'IN_BAG': in_bag}
+    check_output(out_bag, overwrite, inputs)  # before the model loads: fail fast
     counts = topic_counts(in_bag)
     if points_topic not in counts:
         raise CliError(f'bag {in_bag} has no topic {points_topic} (it has: '
@@ -52,7 +59,7 @@ def replay(in_bag: Path, out_bag: Path, params: DetectorParams, points_topic: st
     stats = {'sweeps': 0, 'dropped': 0, 'detections': 0}
     bar = tqdm(total=sum(counts[t] for t in topics), unit='msg', disable=not progress,
                desc='replay', file=sys.stderr)
-    with BagWriter(out_bag) as writer:
+    with BagWriter(out_bag, overwrite, inputs) as writer:
         family = writer.family
 
         def publish(out) -> None:
@@ -107,12 +114,13 @@ def replay(in_bag: Path, out_bag: Path, params: DetectorParams, points_topic: st
 
 
 def run(args: argparse.Namespace) -> int:
+    check_output(args.out_bag, args.overwrite, {'IN_BAG': args.in_bag})
     params = load_params_yaml(args.params) if args.params else DetectorParams()
     overrides = {k: v for k, v in (('detector', args.detector),
                                    ('checkpoint', args.checkpoint)) if v}
     params = dataclasses.replace(params, **overrides)
     stats = replay(args.in_bag, args.out_bag, params, args.points_topic, args.odom_topic,
-                   progress=not args.quiet)
+                   progress=not args.quiet, overwrite=args.overwrite)
     print(f'replayed {stats["sweeps"]} sweeps ({stats["dropped"]} dropped), '
           f'{stats["detections"]} detections -> {args.out_bag}')
     return 0

@@ -3,7 +3,9 @@
 Topics: /points (sensor_msgs/PointCloud2 in the sensor frame), /odom (nav_msgs/Odometry:
 header.frame_id `odom`, child_frame_id = the cloud's frame, pose = sensor pose, so replay needs
 no extrinsic) and /lanes_gt (visualization_msgs/MarkerArray): every GT lane line of the scene
-at the first sweep, then once a second the lines within GT_RADIUS_M of the ego.
+at the first sweep, then once a second the lines within GT_RADIUS_M of the ego. OUT_BAG and
+--preview follow bagio's output rule: refused when they exist unless --overwrite, which replaces
+only a bag folder (OUT_BAG) or a regular file (--preview).
 """
 from __future__ import annotations
 
@@ -13,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from fhld_ros.bagio import BagWriter
+from fhld_ros.bagio import BagWriter, check_file_output, check_output, write_file_atomically
 from fhld_ros.bev import normalize_intensity
 from fhld_ros.errors import CliError
 from fhld_ros.sim.layout import ROAD_CLASSES, TOPOLOGIES
@@ -56,16 +58,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='no range/intensity noise and no random dropouts')
     parser.add_argument('--frame-id', default='lidar', help='cloud frame (default lidar)')
     parser.add_argument('--preview', metavar='PNG', help='also draw a bird\'s-eye picture')
-    parser.add_argument('--overwrite', action='store_true', help='replace an existing OUT_BAG')
+    parser.add_argument('--overwrite', action='store_true',
+                        help='replace an existing OUT_BAG (only a rosbag2 bag folder) and '
+                        '--preview PNG (only a regular file)')
     parser.add_argument('--quiet', action='store_true', help='no progress bar')
 
 
 def _check(args: argparse.Namespace) -> None:
-    out = Path(args.out_bag)
-    if out.exists() and not args.overwrite:
-        raise CliError(f'{out} exists (use --overwrite to replace it)')
-    if not out.resolve().parent.is_dir():
-        raise CliError(f'cannot write {out}: directory {out.resolve().parent} does not exist')
+    check_output(args.out_bag, args.overwrite)
     if not 1 <= args.sweeps <= MAX_SWEEPS:
         raise CliError(f'--sweeps must be in 1..{MAX_SWEEPS}, got {args.sweeps}')
     if args.seed < 0:
@@ -80,9 +80,7 @@ def _check(args: argparse.Namespace) -> None:
         preview = Path(args.preview)
         if preview.suffix.lower() != '.png':
             raise CliError(f'--preview must name a .png file, got {preview}')
-        if not preview.resolve().parent.is_dir():
-            raise CliError(f'cannot write {preview}: directory {preview.resolve().parent} '
-                           'does not exist')
+        check_file_output(preview, args.overwrite, {'OUT_BAG': args.out_bag}, '--preview')
     if not args.frame_id or args.frame_id == 'odom' or any(c.isspace() for c in args.frame_id):
         raise CliError(f'--frame-id must be a non-empty name other than odom, got '
                        f'{args.frame_id!r}')
@@ -137,7 +135,8 @@ def run(args: argparse.Namespace) -> int:
         title = (f'fhld simulate --seed {args.seed} --sweeps {args.sweeps} '
                  f'--sensor {args.sensor}: {scene.road_class}, {events}; '
                  f'{len(scene.lane_lines)} GT lines')
-        preview.save(args.preview, scene.lane_lines, sim.odom_poses[:, :2, 3], title)
+        write_file_atomically(args.preview, lambda tmp: preview.save(
+            tmp, scene.lane_lines, sim.odom_poses[:, :2, 3], title))
     return 0
 
 
