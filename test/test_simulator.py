@@ -1,5 +1,6 @@
 """Simulator core: determinism, GT on the surface, paint on the GT lines, topology coverage,
-lines per window, ego motion and training samples through the node's input path."""
+lines per window, ego motion, worn and missing paint, and training samples through the node's
+input path."""
 from __future__ import annotations
 
 import numpy as np
@@ -10,7 +11,7 @@ from fhld_ros.bev import BevSpec, normalize_intensity
 from fhld_ros.sim.layout import MAX_LINES_PER_WINDOW, TOPOLOGIES, max_lines_per_window
 from fhld_ros.sim.scene import GROUND_MATERIALS, PAINT
 from fhld_ros.sim.simulator import Simulator
-from fhld_ros.training.samples import training_samples
+from fhld_ros.training.samples import paint_contrast, training_samples
 
 
 def world_points(sweep) -> tuple[np.ndarray, np.ndarray]:
@@ -182,10 +183,40 @@ def test_training_samples_follow_the_node_input_path() -> None:
     assert np.mean(dist < 0.15) > 0.8
 
 
+@pytest.mark.parametrize('sensor', ['os1-64', 'vlp32c'])  # uint16 reflectivity, raw 0-255
+def test_worn_paint_is_the_same_scene_with_paint_at_most_its_contrast(sensor: str) -> None:
+    fresh = Simulator(4, sweeps=1, sensor=sensor, columns=512)
+    worn = Simulator(4, sweeps=1, sensor=sensor, columns=512, paint_contrast=2.5)
+    assert all(np.array_equal(a, b) for a, b in zip(fresh.scene.lane_lines,
+                                                    worn.scene.lane_lines))
+    assert len(worn.scene.lane_lines) == len(fresh.scene.lane_lines) > 0
+    f, w = fresh.sweep(0), worn.sweep(0)
+    assert np.mean(w.labels == PAINT) > 0.5 * np.mean(f.labels == PAINT) > 0
+    # median paint / median asphalt of the ground returns: ~10-30x fresh, <= 2.5x worn
+    assert paint_contrast(f.points, f.labels) > 8.0
+    assert 1.2 < paint_contrast(w.points, w.labels) <= 2.5
+
+
+def test_no_markings_is_the_same_road_without_paint_or_gt() -> None:
+    marked = Simulator(6, sweeps=10, sensor='os1-64', columns=512)
+    bare = Simulator(6, sweeps=10, sensor='os1-64', columns=512, markings=False)
+    assert marked.scene.lane_lines and marked.scene.paint.markings
+    assert bare.scene.lane_lines == [] and bare.scene.paint.markings == []
+    assert not bare.scene.layout.style.marked
+    assert np.array_equal(bare.scene.layout.offsets, marked.scene.layout.offsets)
+    assert np.array_equal(bare.true_poses, marked.true_poses)
+    sweep = bare.sweep(9)
+    assert not np.any(sweep.labels == PAINT) and np.any(marked.sweep(9).labels == PAINT)
+    sample = next(training_samples(bare, 1))
+    assert sample.lanes == [] and sample.meta['line_ids'] == []
+    assert np.isnan(sample.meta['paint_contrast'])
+
+
 def test_bad_options_raise_clear_errors() -> None:
     for kwargs, text in (({'sensor': 'bogus'}, 'unknown sensor'), ({'speed': 40.0}, 'speed'),
                          ({'columns': 8}, 'columns'), ({'topology': 'loop'}, 'topology'),
-                         ({'intensity': 'dB'}, 'intensity')):
+                         ({'intensity': 'dB'}, 'intensity'),
+                         ({'paint_contrast': 0.5}, 'paint_contrast')):
         with pytest.raises(ValueError, match=text):
             Simulator(0, sweeps=1, **kwargs)
     with pytest.raises(ValueError, match='sweeps'):

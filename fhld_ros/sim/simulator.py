@@ -15,7 +15,7 @@ start of a longer one (within a block).
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -78,6 +78,11 @@ class SimConfig:
     odom_noise: float = 0.0  # odometry drift level (0 = exact, 1 = typical wheel odometry)
     motion_distortion: bool = False  # points in each column's own sensor frame (raw driver)
     noise: bool = True  # range / intensity noise and random dropouts
+    # worn paint: None = the usual paint (fresh: ~6x the asphalt's diffuse reflectance, ~18x
+    # its intensity with the glass beads); a number = beads worn off, the paint's reflectance
+    # at most this many times the asphalt's
+    paint_contrast: float | None = None
+    markings: bool = True  # False: the same road with no paint at all (no lines, no GT)
 
     def validate(self) -> None:
         def bad(msg: str) -> None:
@@ -101,6 +106,8 @@ class SimConfig:
             bad(f'speed must be within 0..{MAX_SPEED:g} m/s, got {self.speed:g}')
         if not 0.0 <= self.odom_noise <= 10.0:
             bad(f'odom_noise must be within 0..10, got {self.odom_noise:g}')
+        if self.paint_contrast is not None and not 1.0 <= self.paint_contrast <= 20.0:
+            bad(f'paint_contrast must be within 1..20, got {self.paint_contrast:g}')
 
 
 @dataclass
@@ -190,6 +197,8 @@ class Simulator:
         ref = make_reference_line(r_road, -200.0, travel + 500.0, shape, crossfall, 0.0)
         layout = make_layout(r_layout, r_paint, ref.s, road_class, 0.0, travel,
                              config.topology)
+        if not config.markings:  # drawn as usual, then stripped: the road stays the same
+            layout = replace(layout, style=replace(layout.style, marked=False), lines=[])
         paint = Paint(ref, layout, r_paint, road_class)
         surface = Surface(ref, layout, r_surface, road_class)
         static = place_static(r_static, ref, layout, surface, road_class)
@@ -320,9 +329,13 @@ class Simulator:
             on_line = line >= 0
             yellow[on_line] = scene.paint.yellow[line[on_line]]
             c = contrast[paint]
-            rho[paint] = rho[paint] * (1.0 - c) + np.where(yellow[paint], PAINT_RHO[True],
-                                                           PAINT_RHO[False]) * c
-            retro[paint] = PAINT_RETRO * c
+            worn = self.config.paint_contrast
+            if worn is None:
+                rho[paint] = rho[paint] * (1.0 - c) + np.where(
+                    yellow[paint], PAINT_RHO[True], PAINT_RHO[False]) * c
+                retro[paint] = PAINT_RETRO * c
+            else:  # beads gone: no retro-reflection, reflectance relative to the asphalt
+                rho[paint] = rho[paint] * (1.0 + (worn - 1.0) * c)
             material[paint] = PAINT
         dzs, dzd = scene.surface.normal_slopes(s, d, z, rows=rows)
         heading = np.interp(s, scene.ref.s, scene.ref.column('heading'))
