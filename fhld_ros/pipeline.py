@@ -5,6 +5,15 @@
     out = pipeline.detect()           # None when nothing new arrived since the last call
 
 Lanes come out in the output frame (the odometry's frame, else the cloud's) with stable ids.
+
+Odometry timing: a sweep's pose is interpolated inside the odometry buffer. A sweep newer than
+the newest odometry waits, in stamp order, until odometry reaches its stamp or until the newest
+stamp seen (cloud or odometry) is params.odom_wait_sec past it; the wait is measured in the
+stream's own time, so a replay is deterministic (the live node adds a clock check for when
+messages stop altogether: expire_waiting). A sweep that no odometry covers then (odometry
+stopped, or the sweep is older than the buffer) is detected on its own in the cloud frame and
+counted as clouds_without_odometry. While odometry stays away, a sweep waits only until a newer
+message arrives (the next cloud, or the odometry coming back, which then covers it).
 """
 from __future__ import annotations
 
@@ -24,9 +33,12 @@ from msg_adapters.family import stamp_to_ns
 from msg_adapters.odometry import euler_to_matrix, interpolate_pose, odometry_to_matrix
 from msg_adapters.pointcloud2 import read_xyzi
 
-ODOM_HISTORY = 400  # ~4 s at 100 Hz
-ODOM_HOLD_NS = 200_000_000  # a cloud up to 0.2 s newer than the newest odometry uses it as is
-MAX_PENDING = 3  # sweeps that wait for the odometry of their stamp (0.3 s at 10 Hz)
+ODOM_HISTORY = 4000  # poses kept at most (20 s at 200 Hz) ...
+ODOM_HISTORY_NS = 5_000_000_000  # ... and no older than this behind the newest
+# Poses further apart than this are not interpolated between: odometry stopped in between
+ODOM_MAX_GAP_NS = 500_000_000
+TIME_BACK_NS = 1_000_000_000  # a stamp this far behind the newest: time went back (bag loop)
+MAX_PENDING = 32  # waiting sweeps at most, whatever the stamps say (memory bound)
 
 
 class LaneDetector(Protocol):
@@ -61,28 +73,33 @@ class PoseBuffer:
         self.stamps.clear()
         self.poses.clear()
 
+    @property
+    def newest(self) -> int | None:
+        return self.stamps[-1] if self.stamps else None
+
     def add(self, stamp_ns: int, pose: np.ndarray) -> None:
-        if self.stamps and stamp_ns < self.stamps[-1] - 1_000_000_000:
+        if self.stamps and stamp_ns < self.stamps[-1] - TIME_BACK_NS:
             self.clear()  # time went back (bag loop): old poses belong to another run
         index = bisect.bisect(self.stamps, stamp_ns)
         self.stamps.insert(index, stamp_ns)
         self.poses.insert(index, pose)
-        if len(self.stamps) > self.capacity:
-            del self.stamps[0], self.poses[0]
+        old = bisect.bisect_left(self.stamps, self.stamps[-1] - ODOM_HISTORY_NS)
+        old = max(old, len(self.stamps) - self.capacity)
+        if old > 0:
+            del self.stamps[:old], self.poses[:old]
 
     def at(self, stamp_ns: int) -> np.ndarray | None:
-        """Pose at stamp_ns, or None when the stamp is outside the buffered span."""
-        if not self.stamps:
-            return None
+        """Pose at stamp_ns, or None when no two poses at most ODOM_MAX_GAP_NS apart (or one
+        at exactly stamp_ns) surround it: no extrapolation, no hold."""
         index = bisect.bisect_left(self.stamps, stamp_ns)
         if index < len(self.stamps) and self.stamps[index] == stamp_ns:
             return self.poses[index]
-        if index == 0:
+        if index == 0 or index == len(self.stamps):
             return None
-        if index == len(self.stamps):
-            return self.poses[-1] if stamp_ns - self.stamps[-1] <= ODOM_HOLD_NS else None
-        return interpolate_pose(stamp_ns, self.stamps[index - 1], self.poses[index - 1],
-                                self.stamps[index], self.poses[index])
+        t0, t1 = self.stamps[index - 1], self.stamps[index]
+        if t1 - t0 > ODOM_MAX_GAP_NS:
+            return None
+        return interpolate_pose(stamp_ns, t0, self.poses[index - 1], t1, self.poses[index])
 
 
 class LaneIdTracker:
@@ -139,6 +156,9 @@ def ego_lane_bounds(lanes_window: list[np.ndarray],
     return left, right
 
 
+_WAIT = object()  # _pose_for: odometry may still come for this stamp
+
+
 class LanePipeline:
     """Odometry + clouds -> rolling BEV grid -> detector -> lanes in the output frame."""
 
@@ -156,91 +176,133 @@ class LanePipeline:
         self.lidar_to_base = euler_to_matrix(*params.lidar_to_base)
         self.ids = LaneIdTracker()
         self.output_frame: str | None = None
+        self.grid_frame: str | None = None  # the frame of the sweeps in the grid
         self.sweeps_since_detection = 0
-        self.pending: collections.deque[tuple] = collections.deque()
+        self.wait_ns = round(params.odom_wait_sec * 1e9)
+        self.newest_seen_ns: int | None = None  # cloud or odometry: the stream's clock
+        # True from a sweep that odometry did not cover in time until the next odometry
+        # message: meanwhile a sweep waits only for any newer message
+        self.odometry_stopped = False
+        self.pending: collections.deque[tuple] = collections.deque()  # in stamp order
         self.counters = {'clouds': 0, 'odometry': 0, 'detections': 0, 'sweeps_skipped': 0,
-                         'resets': 0, 'clouds_without_odometry': 0}
+                         'resets': 0, 'clouds_without_odometry': 0, 'odometry_timeouts': 0}
 
     @property
     def uses_odometry(self) -> bool:
         return self.odom_frame is not None
 
     def add_odometry(self, msg: Any) -> None:
-        """Buffer one odometry message. Raises ValueError (naming the problem), changing
-        nothing, for an empty frame_id (it would be the output frame) or a non-finite or
-        non-unit pose."""
+        """Buffer one odometry message and let in the sweeps it covers. Raises ValueError
+        (naming the problem), changing nothing, for an empty frame_id (it would be the output
+        frame) or a non-finite or non-unit pose."""
         frame = str(msg.header.frame_id)
         if not frame:
             raise ValueError('odometry has an empty frame_id')
         pose = odometry_to_matrix(msg)  # validates before any state changes
+        stamp_ns = stamp_to_ns(msg.header.stamp)
         self.odom_frame, self.odom_child = frame, str(msg.child_frame_id)
-        self.odometry.add(stamp_to_ns(msg.header.stamp), pose)
+        self._saw(stamp_ns)
+        self.odometry.add(stamp_ns, pose)
         self.counters['odometry'] += 1
-        # sweeps that arrived before the odometry of their stamp go in now, in order
-        while self.pending and self.pending[0][0] <= self.odometry.stamps[-1]:
-            try:
-                self._insert(*self.pending.popleft())
-            except ValueError:
-                self.counters['clouds_without_odometry'] += 1
+        self.odometry_stopped = False  # it is back: sweeps wait for their odometry again
+        self._release()
 
     def sensor_pose(self, stamp_ns: int, cloud_frame: str) -> np.ndarray | None:
-        """Cloud frame -> output frame at the stamp (identity without odometry)."""
-        if not self.uses_odometry:
-            return np.eye(4)
+        """Cloud frame -> odometry frame at the stamp; None when no odometry covers it."""
         pose = self.odometry.at(stamp_ns)
         if pose is None:
             return None
         return pose if cloud_frame == self.odom_child else pose @ self.lidar_to_base
 
     def add_cloud(self, msg: Any) -> dict[str, float]:
-        """Decode and insert one sweep. Raises ValueError (naming the problem) for bad input:
-        a malformed cloud, one over params.max_points, an empty frame_id.
-
-        A sweep newer than the newest odometry waits (up to MAX_PENDING sweeps) for the
-        odometry of its stamp, since clouds and odometry arrive on independent topics.
-        """
+        """Decode one sweep; it goes into the grid with the sweeps it let in, or waits for its
+        odometry (see the module doc). Raises ValueError (naming the problem) for bad input:
+        a malformed cloud, one over params.max_points, an empty frame_id."""
         start = time.perf_counter()
         frame = str(msg.header.frame_id)
         if not frame:  # it would become the output frame without odometry
             raise ValueError('cloud has an empty frame_id')
         xyz, intensity = read_xyzi(msg, max_points=self.params.max_points)
         decoded = time.perf_counter()
-        sweep = (stamp_to_ns(msg.header.stamp), frame, xyz, intensity)
-        ahead = self.uses_odometry and sweep[0] > self.odometry.stamps[-1]
-        first = (self.expect_odometry and not self.uses_odometry
-                 and self.counters['clouds'] == 0)  # odometry may be near
-        if ahead or first or self.pending:
-            self.pending.append(sweep)
-            if len(self.pending) <= MAX_PENDING:
-                return {'decode_ms': (decoded - start) * 1e3}
-            # odometry is late: the oldest goes in on a held pose; with no odometry at all,
-            # everything that waited goes in per sweep
-            for _ in range(1 if self.uses_odometry else len(self.pending)):
-                self._insert(*self.pending.popleft())
-        else:
-            self._insert(*sweep)
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        if self.newest_seen_ns is not None and stamp_ns < self.newest_seen_ns - TIME_BACK_NS:
+            # time went back (bag loop): what waits, and the poses, are from the run before
+            self.expire_waiting()
+            self.odometry.clear()
+            self.newest_seen_ns = None
+        self._saw(stamp_ns)
+        # in stamp order, so the grid (which resets when time goes back) sees them in order
+        index = bisect.bisect([s[0] for s in self.pending], stamp_ns)
+        self.pending.insert(index, (stamp_ns, frame, xyz, intensity))
+        self._release()
         done = time.perf_counter()
         return {'decode_ms': (decoded - start) * 1e3, 'grid_insert_ms': (done - decoded) * 1e3}
 
-    def insert_waiting(self) -> bool:
-        """Insert the oldest sweep still waiting for odometry (at the end of a bag); False when
-        none waits. Raises ValueError when no odometry lies around its stamp."""
-        if not self.pending:
-            return False
-        self._insert(*self.pending.popleft())
-        return True
+    def expire_waiting(self) -> int:
+        """Let every waiting sweep in now: with odometry where it covers, else per sweep (the
+        live node's clock check when messages stop coming). Returns how many went in."""
+        return self._release(force=len(self.pending))
 
-    def _insert(self, stamp_ns: int, frame: str, xyz: np.ndarray, intensity: np.ndarray) -> None:
-        pose = self.sensor_pose(stamp_ns, frame)
-        if pose is None:
-            raise ValueError(f'no odometry around cloud stamp {stamp_ns * 1e-9:.3f} s')
-        if not self.uses_odometry and len(self.grid):
-            self.grid.reset()  # without odometry sweeps cannot be registered: one at a time
+    def insert_waiting(self) -> bool:
+        """Let the oldest waiting sweep in now (at the end of a bag); False when none waits."""
+        return self._release(force=1) > 0
+
+    def _saw(self, stamp_ns: int) -> None:
+        if self.newest_seen_ns is None or stamp_ns > self.newest_seen_ns:
+            self.newest_seen_ns = stamp_ns
+
+    def _pose_for(self, stamp_ns: int, frame: str) -> Any:
+        """The sweep's pose, None when it will never have one, or _WAIT."""
+        newest = self.odometry.newest
+        if newest is None:  # none yet, or none since time went back
+            return _WAIT if self.expect_odometry or self.uses_odometry else None
+        if stamp_ns > newest:
+            return _WAIT
+        return self.sensor_pose(stamp_ns, frame)
+
+    def _release(self, force: int = 0) -> int:
+        """Insert waiting sweeps from the oldest on, while each has its pose, never will, or
+        has waited long enough (or is one of the `force` oldest). Returns how many went in."""
+        inserted = 0
+        while self.pending:
+            stamp_ns, frame, xyz, intensity = self.pending[0]
+            pose = self._pose_for(stamp_ns, frame)
+            if pose is _WAIT:
+                # stopped: no full wait, but odometry coming back just after this sweep's
+                # cloud still covers it; and a run that never had odometry does not wait
+                wait_ns = (0 if self.uses_odometry else -1) if self.odometry_stopped \
+                    else self.wait_ns
+                overdue = (self.newest_seen_ns - stamp_ns > wait_ns
+                           or len(self.pending) > MAX_PENDING)
+                if not (inserted < force or overdue):
+                    break
+                if not self.odometry_stopped and self.uses_odometry:
+                    self.counters['odometry_timeouts'] += 1
+                self.odometry_stopped = True
+                pose = None
+            self.pending.popleft()
+            self._insert(stamp_ns, frame, xyz, intensity, pose)
+            inserted += 1
+        return inserted
+
+    def _insert(self, stamp_ns: int, frame: str, xyz: np.ndarray, intensity: np.ndarray,
+                pose: np.ndarray | None) -> None:
+        """Into the grid in the odometry frame, or alone in the cloud frame when pose is None."""
+        if pose is None and self.uses_odometry:
+            self.counters['clouds_without_odometry'] += 1
+        output_frame = frame if pose is None else self.odom_frame
+        if len(self.grid) and (pose is None or output_frame != self.grid_frame):
+            # sweeps without a pose cannot be registered: one at a time; and a grid never
+            # mixes frames (odometry stopping or coming back)
+            self.grid.reset()
+            if output_frame != self.grid_frame:
+                self.ids.reset()
         scale = self.params.intensity_scale or None
-        if self.grid.insert(stamp_ns, xyz, intensity, pose, scale):
+        if self.grid.insert(stamp_ns, xyz, intensity, np.eye(4) if pose is None else pose,
+                            scale):
             self.counters['resets'] += 1
             self.ids.reset()
-        self.output_frame = self.odom_frame if self.uses_odometry else frame
+        self.grid_frame = self.output_frame = output_frame
         self.sweeps_since_detection += 1
         self.counters['clouds'] += 1
 

@@ -42,14 +42,20 @@ def _odom(stamp_ns, pose, child='lidar'):
     return make_odometry(FAMILY, FAMILY.header(stamp_ns, 'odom'), child, pose)
 
 
-def test_pose_buffer_interpolates_holds_briefly_and_refuses_gaps():
+def test_pose_buffer_interpolates_inside_and_refuses_outside_and_across_gaps():
     buffer = PoseBuffer()
-    buffer.add(2_000_000_000, euler_to_matrix(10, 0, 0, 0, 0, 0))
+    buffer.add(1_400_000_000, euler_to_matrix(4, 0, 0, 0, 0, 0))
     buffer.add(1_000_000_000, euler_to_matrix(0, 0, 0, 0, 0, 0))  # out of order is fine
-    np.testing.assert_allclose(buffer.at(1_500_000_000)[:3, 3], [5, 0, 0])
-    np.testing.assert_allclose(buffer.at(2_100_000_000)[:3, 3], [10, 0, 0])
-    assert buffer.at(2_300_000_000) is None
-    assert buffer.at(900_000_000) is None
+    np.testing.assert_allclose(buffer.at(1_100_000_000)[:3, 3], [1, 0, 0])
+    np.testing.assert_allclose(buffer.at(1_400_000_000)[:3, 3], [4, 0, 0])
+    assert buffer.at(1_400_000_001) is None and buffer.at(999_999_999) is None  # no hold
+    buffer.add(2_400_000_000, euler_to_matrix(9, 0, 0, 0, 0, 0))
+    assert buffer.at(1_900_000_000) is None  # 1 s between poses: odometry stopped there
+    # old poses leave by age, and all of them when time goes back
+    buffer.add(7_000_000_000, np.eye(4))
+    assert buffer.stamps == [2_400_000_000, 7_000_000_000]
+    buffer.add(100, np.eye(4))
+    assert buffer.stamps == [100]
 
 
 def test_lane_ids_survive_small_motion_and_new_lanes_get_new_ids():
@@ -102,23 +108,36 @@ def test_cloud_in_another_frame_uses_the_static_extrinsic():
 
 def test_without_odometry_each_sweep_stands_alone_in_the_cloud_frame():
     detector = FixedLanes([_line(1.8)], [0.9])
-    pipeline = LanePipeline(DetectorParams(size_px=64, resolution_m=0.5), detector)
-    for k in range(3):  # the first sweeps wait briefly in case odometry is on its way
+    params = DetectorParams(size_px=64, resolution_m=0.5, odom_wait_sec=0.25)
+    pipeline = LanePipeline(params, detector)
+    for k in range(3):  # the first sweeps wait odom_wait_sec in case odometry is on its way
         pipeline.add_cloud(_cloud(k * 100_000_000, frame='os_lidar'))
     assert len(pipeline.grid) == 0
-    for k in range(3, 5):
-        pipeline.add_cloud(_cloud(k * 100_000_000, frame='os_lidar'))
+    pipeline.add_cloud(_cloud(300_000_000, frame='os_lidar'))  # 0.3 s past the first
+    assert len(pipeline.grid) == 1 and pipeline.counters['clouds'] == 4
+    pipeline.add_cloud(_cloud(400_000_000, frame='os_lidar'))  # no more waiting
     assert len(pipeline.grid) == 1 and pipeline.counters['clouds'] == 5
     out = pipeline.detect()
-    assert out.frame_id == 'os_lidar'
+    assert out.frame_id == 'os_lidar' and out.stamp_ns == 400_000_000
     np.testing.assert_allclose(out.lanes[0], _line(1.8), atol=1e-6)
+    # nothing to count: there never was odometry to be without
+    assert pipeline.counters['clouds_without_odometry'] == 0
 
 
-def test_a_cloud_without_odometry_coverage_is_refused_by_name():
-    pipeline = LanePipeline(DetectorParams(size_px=64, resolution_m=0.5), FixedLanes([], []))
-    pipeline.add_odometry(_odom(5_000_000_000, np.eye(4)))
-    with pytest.raises(ValueError, match='no odometry around cloud stamp 1.000 s'):
-        pipeline.add_cloud(_cloud(1_000_000_000))
+def test_a_cloud_older_than_the_odometry_is_detected_alone_and_counted():
+    # issue #17: such sweeps were dropped as bad clouds
+    detector = FixedLanes([_line(1.8)], [0.9])
+    pipeline = LanePipeline(DetectorParams(size_px=64, resolution_m=0.5), detector)
+    pipeline.add_odometry(_odom(5_000_000_000, euler_to_matrix(7, 0, 0, 0, 0, 0)))
+    pipeline.add_cloud(_cloud(4_500_000_000))
+    assert pipeline.counters['clouds_without_odometry'] == 1
+    out = pipeline.detect()
+    assert (out.frame_id, out.stamp_ns) == ('lidar', 4_500_000_000)
+    np.testing.assert_allclose(out.lanes[0], _line(1.8), atol=1e-6)
+    pipeline.add_cloud(_cloud(5_000_000_000))  # covered: the odometry frame again, alone
+    out = pipeline.detect()
+    assert out.frame_id == 'odom' and len(pipeline.grid) == 1
+    np.testing.assert_allclose(out.lanes[0], _line(1.8) + [7, 0, 0], atol=1e-6)
 
 
 def test_a_cloud_ahead_of_its_odometry_waits_for_it():
@@ -131,10 +150,23 @@ def test_a_cloud_ahead_of_its_odometry_waits_for_it():
     assert len(pipeline.grid) == 1
     pipeline.detect()
     np.testing.assert_allclose(detector.windows[0].window_to_output[:3, 3], [2, 0, 0])
-    # without odometry for too long, the oldest waiting sweep goes in on the held pose
-    for k in range(2, 6):
+    # sweeps queue behind the odometry in stamp order, at most odom_wait_sec of stream time
+    for k in (3, 2, 4, 5):
         pipeline.add_cloud(_cloud(k * 100_000_000))
-    assert len(pipeline.pending) == 3 and pipeline.counters['clouds'] == 2
+    assert [s[0] for s in pipeline.pending] == [k * 100_000_000 for k in range(2, 6)]
+    pipeline.add_odometry(_odom(300_000_000, euler_to_matrix(6.0, 0, 0, 0, 0, 0)))
+    assert [s[0] for s in pipeline.pending] == [400_000_000, 500_000_000]
+    assert pipeline.counters['clouds'] == 3 and pipeline.counters['sweeps_skipped'] == 0
+    pipeline.add_cloud(_cloud(1_400_000_000))  # 1.0 s past the oldest waiting: it still waits
+    assert pipeline.counters['clouds'] == 3
+    pipeline.add_cloud(_cloud(1_500_000_000))  # more: the waiting ones go in alone, and
+    # while odometry stays away a sweep waits only for a newer message
+    assert [s[0] for s in pipeline.pending] == [1_500_000_000]
+    assert pipeline.counters['clouds'] == 6 and pipeline.counters['clouds_without_odometry'] == 3
+    pipeline.add_odometry(_odom(1_500_000_000, euler_to_matrix(9.0, 0, 0, 0, 0, 0)))
+    assert not pipeline.pending and pipeline.output_frame == 'odom'
+    assert pipeline.counters['clouds_without_odometry'] == 3 and not pipeline.odometry_stopped
+    assert pipeline.counters['odometry_timeouts'] == 1
 
 
 def test_an_empty_cloud_frame_id_is_refused_and_changes_nothing():

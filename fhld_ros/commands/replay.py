@@ -101,15 +101,13 @@ def replay(in_bag: Path, out_bag: Path, params: DetectorParams, points_topic: st
             else:
                 pipeline.add_odometry(msg)
             timer()
-        while pipeline.pending:  # the bag ended before the odometry of its last sweeps
-            stamp_ns = pipeline.pending[0][0]
-            try:
-                pipeline.insert_waiting()
-            except ValueError as exc:
-                stats['sweeps'] -= 1
-                dropped(stamp_ns, exc)
+        # the bag ended before the odometry of its last sweeps: they go in one at a time
+        # (per sweep where no odometry covers them), each on the timer as before
+        while pipeline.insert_waiting():
             timer()
     bar.close()
+    if pipeline.counters['clouds_without_odometry']:  # sweeps detected alone, in their frame
+        stats['without_odometry'] = pipeline.counters['clouds_without_odometry']
     return stats
 
 
@@ -121,6 +119,8 @@ def run(args: argparse.Namespace) -> int:
     params = dataclasses.replace(params, **overrides)
     stats = replay(args.in_bag, args.out_bag, params, args.points_topic, args.odom_topic,
                    progress=not args.quiet, overwrite=args.overwrite)
-    print(f'replayed {stats["sweeps"]} sweeps ({stats["dropped"]} dropped), '
+    alone = (f', {stats["without_odometry"]} without odometry (detected alone)'
+             if stats.get('without_odometry') else '')
+    print(f'replayed {stats["sweeps"]} sweeps ({stats["dropped"]} dropped{alone}), '
           f'{stats["detections"]} detections -> {args.out_bag}')
     return 0

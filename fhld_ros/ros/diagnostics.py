@@ -69,13 +69,18 @@ class NodeStats:
         return values
 
     def status(self, pipeline_counters: Mapping[str, int], input_reliability: str,
-               hardware_id: str) -> DiagnosticStatus:
-        """WARN once a bad message was dropped or anything failed, else OK."""
+               hardware_id: str, odometry_stopped: bool = False) -> DiagnosticStatus:
+        """WARN once a bad message was dropped or anything failed, or while sweeps go in
+        without odometry (it stopped), else OK."""
         counters = dict(pipeline_counters, **self.counts)
         dropped = counters.get('bad_clouds', 0) + counters.get('bad_odometry', 0)
         values = self.values(counters, input_reliability)
+        values['odometry_stopped'] = str(odometry_stopped).lower()
+        messages = ([f'{dropped} bad messages dropped'] if dropped else []) + (
+            ['odometry stopped: detecting per sweep'] if odometry_stopped else [])
+        warn = dropped or self.last_error or odometry_stopped
         return DiagnosticStatus(
-            level=DiagnosticStatus.WARN if dropped or self.last_error else DiagnosticStatus.OK,
+            level=DiagnosticStatus.WARN if warn else DiagnosticStatus.OK,
             name=STATUS_NAME, hardware_id=hardware_id,
-            message=f'{dropped} bad messages dropped' if dropped else 'running',
+            message='; '.join(messages) or 'running',
             values=[KeyValue(key=k, value=v) for k, v in values.items()])

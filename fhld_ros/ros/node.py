@@ -5,7 +5,10 @@ callback (a guard condition; so does odometry that lets a waiting sweep in); a t
 so use_sim_time works) polls as well. Both run in their own callback group and never queue up:
 a wake-up with no new sweep, or during a running detection, is skipped, and a detection that
 ends with a newer sweep waiting starts on it at once. A bad message is dropped, counted and
-warned about (throttled). Topics, frames and messages: docs/design.md §3.
+warned about (throttled). A sweep waits for its odometry in stream time (LanePipeline); the
+poll and the diagnostics timer add a wall-clock check for when messages stop altogether, and
+the node warns (throttled) while sweeps go in per sweep for want of odometry. Topics, frames
+and messages: docs/design.md §3.
 """
 from __future__ import annotations
 
@@ -74,6 +77,11 @@ class LaneDetectorNode(Node):
         self.lock = threading.Lock()  # the pipeline: cloud / odometry callbacks vs detection
         self.detecting = threading.Lock()
         self.said_no_odometry = False
+        self.said_odometry_stopped = False
+        # When the newest message came in (wall clock): sweeps waiting for odometry expire
+        # when nothing has come for odom_wait_sec (the pipeline's own bound needs newer
+        # messages). Not ROS time: with use_sim_time it stops with the bag, the poll with it.
+        self.last_input = time.monotonic()
         # rate_hz limits detections by sweep stamps, not by when the last detection ran: a
         # limit on the clock phase-locked detections behind arrivals (measured: +40 ms of
         # waiting per sweep).
@@ -147,7 +155,22 @@ class LaneDetectorNode(Node):
         self.get_logger().warning(f'dropped {what.replace("_", " ")}: {exc}',
                                   throttle_duration_sec=WARN_THROTTLE_SEC)
 
+    def _report_odometry(self) -> None:
+        """Warn (throttled) while sweeps go in without odometry; say when it is back."""
+        stopped = self.pipeline.odometry_stopped and self.pipeline.uses_odometry
+        if stopped:
+            self.said_odometry_stopped = True
+            self.get_logger().warning(
+                f'no odometry on {self.params.odom_topic} within odom_wait_sec '
+                f'{self.params.odom_wait_sec:g} s of the sweeps: detecting per sweep in the '
+                'cloud frame', throttle_duration_sec=WARN_THROTTLE_SEC)
+        elif self.said_odometry_stopped and self.pipeline.uses_odometry:
+            self.said_odometry_stopped = False
+            self.get_logger().info(f'odometry on {self.params.odom_topic} is back: detecting '
+                                   f'in {self.pipeline.odom_frame} again')
+
     def on_odometry(self, msg: Odometry) -> None:
+        self.last_input = time.monotonic()
         try:
             with self.lock:
                 newest = self.pipeline.grid.newest_stamp_ns
@@ -156,6 +179,8 @@ class LaneDetectorNode(Node):
         except Exception as exc:  # a bad message never takes the node down
             self._drop('bad_odometry', exc)
             return
+        if self.said_odometry_stopped:
+            self._report_odometry()
         if inserted:
             # A sweep that came before the odometry of its stamp went in just now; without this
             # wake-up it waited for the next poll (measured: +31 ms on 1 sweep in 6).
@@ -163,6 +188,7 @@ class LaneDetectorNode(Node):
 
     def on_cloud(self, msg: PointCloud2) -> None:
         arrived = time.monotonic()
+        self.last_input = time.monotonic()
         self.stats.counts['clouds_received'] += 1
         try:
             with self.lock:
@@ -174,6 +200,7 @@ class LaneDetectorNode(Node):
             self._drop('bad_clouds', exc)
             return
         self.wake_detection.trigger()
+        self._report_odometry()
         if no_odometry and not self.said_no_odometry:
             self.said_no_odometry = True
             self.get_logger().info(f'no odometry on {self.params.odom_topic} yet: '
@@ -183,11 +210,24 @@ class LaneDetectorNode(Node):
         if not self.detecting.acquire(blocking=False):
             return  # the previous detection is still running: never queue
         try:
+            self.expire_waiting()
             # A sweep that came in during a detection was skipped by its wake-up: go on.
             while self.detect_once():
                 pass
         finally:
             self.detecting.release()
+
+    def expire_waiting(self) -> bool:
+        """Sweeps still waiting for odometry after odom_wait_sec without any message go in
+        now (per sweep where nothing covers them); True when any did."""
+        if not self.pipeline.pending:
+            return False
+        if time.monotonic() - self.last_input <= self.params.odom_wait_sec:
+            return False
+        with self.lock:
+            inserted = self.pipeline.expire_waiting()
+        self._report_odometry()
+        return inserted > 0
 
     def detect_once(self) -> bool:
         """Detect on the newest sweep if it is due; True when a detection ran."""
@@ -219,9 +259,12 @@ class LaneDetectorNode(Node):
             return False
 
     def publish_diagnostics(self) -> None:
+        if self.expire_waiting():  # the poll runs on ROS time, which may have stopped
+            self.wake_detection.trigger()
         status = self.stats.status(self.pipeline.counters,
                                    getattr(self.points_reliability, 'name', ''),
-                                   self.get_fully_qualified_name())
+                                   self.get_fully_qualified_name(),
+                                   odometry_stopped=self.said_odometry_stopped)
         self.diag_pub.publish(DiagnosticArray(
             header=FAMILY.header(self.get_clock().now().nanoseconds, ''), status=[status]))
 

@@ -58,6 +58,10 @@ class DetectorParams:
         1 << 20, 'clouds of more than this many points (height x width, read from the header '
         'before anything is allocated) are refused as bad clouds; 1048576 = 4 x a 128 x 2048 '
         'sensor')
+    odom_wait_sec: float = documented(
+        1.0, 'a sweep newer than the newest odometry waits for it until a message stamped '
+        'this much later arrives (live: or this long passes without any message); then it is '
+        'detected alone in the cloud frame, as are the next sweeps until odometry resumes')
     intensity_scale: float = documented(
         0.0, 'full scale of the intensity field; 0 = infer per sweep (1, 255, 65535)')
     input_reliability: str = documented(
@@ -89,6 +93,8 @@ class DetectorParams:
         points = self.max_points
         if isinstance(points, bool) or not (isinstance(points, int) and points > 0):
             problems.append('max_points must be an integer > 0')
+        if not 0 <= self.odom_wait_sec <= 10:
+            problems.append('odom_wait_sec must be within 0..10')
         if not self.evidence_reach_m >= 0:
             problems.append('evidence_reach_m must be >= 0')
         if not (self.rate_hz > 0 and self.accumulate_sec >= 0 and self.max_sweeps >= 1

@@ -1,0 +1,71 @@
+"""LaneDetectorNode when odometry stops and comes back (issue #17): the poll's clock check lets a
+sweep that waits for odometry in when nothing more arrives, the node detects per sweep in the
+cloud frame and says so on /diagnostics (WARN), and returns to the odometry frame after."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticStatus
+from nav_msgs.msg import Odometry
+from ros_helpers import wait_until
+from sensor_msgs.msg import PointCloud2
+from test_node import START_NS, running  # noqa: F401  (running: the node fixture)
+
+from msg_adapters.family import rclpy_family
+from msg_adapters.lanes import marker_array_to_lanes
+from msg_adapters.odometry import euler_to_matrix, make_odometry
+from msg_adapters.pointcloud2 import create_cloud
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
+SWEEP_NS = 100_000_000
+
+
+def _cloud(stamp_ns: int) -> PointCloud2:
+    rng = np.random.default_rng(0)
+    points = np.zeros(4000, dtype=[('x', '<f4'), ('y', '<f4'), ('z', '<f4'),
+                                   ('intensity', '<f4')])
+    points['x'], points['y'] = rng.uniform(-12, 12, 4000), rng.uniform(-12, 12, 4000)
+    points['z'], points['intensity'] = -1.8, rng.uniform(0, 30, 4000)
+    return create_cloud(PointCloud2, rclpy_family().header(stamp_ns, 'lidar'), points)
+
+
+def _odom(stamp_ns: int) -> Odometry:
+    pose = euler_to_matrix(2.0 * (stamp_ns - START_NS) * 1e-8, 0, 0, 0, 0, 0)
+    return make_odometry(rclpy_family(), rclpy_family().header(stamp_ns, 'odom'), 'lidar', pose)
+
+
+def test_odometry_that_stops_falls_back_per_sweep_and_comes_back(running):  # noqa: F811
+    node, probe = running(detector='classical', size_px=128, resolution_m=0.2,
+                          odom_wait_sec=0.3)
+    assert wait_until(lambda: probe.points.get_subscription_count() > 0
+                      and probe.odom.get_subscription_count() > 0, 10)
+
+    def frame_at(stamp_ns: int) -> str | None:
+        for msg in list(probe.lanes):
+            if marker_array_to_lanes(msg).stamp_ns == stamp_ns:
+                return msg.markers[0].header.frame_id
+        return None
+
+    s0, s1, s2 = (START_NS + k * SWEEP_NS for k in range(3))
+    probe.odom.publish(_odom(s0))
+    probe.points.publish(_cloud(s0))
+    assert wait_until(lambda: frame_at(s0) == 'odom', 10)
+    # then a sweep whose odometry never comes, and nothing else: the clock check lets it in
+    probe.points.publish(_cloud(s1))
+    assert wait_until(lambda: frame_at(s1) is not None, 10), probe.diagnostic_values()
+    assert frame_at(s1) == 'lidar'
+    assert wait_until(lambda: probe.diagnostic_values().get('odometry_stopped') == 'true', 5)
+    status = probe.diagnostics[-1].status[0]
+    assert (status.level, status.message) == (
+        DiagnosticStatus.WARN, 'odometry stopped: detecting per sweep')
+    values = probe.diagnostic_values()
+    assert (values['clouds_without_odometry'], values['odometry_timeouts']) == ('1', '1')
+    assert values.get('bad_clouds', '0') == '0'
+    # odometry comes back: the odometry frame again, and the warning clears
+    probe.odom.publish(_odom(s2))
+    probe.points.publish(_cloud(s2))
+    assert wait_until(lambda: frame_at(s2) == 'odom', 10), probe.diagnostic_values()
+    assert wait_until(lambda: probe.diagnostic_values().get('odometry_stopped') == 'false', 5)
+    assert probe.diagnostics[-1].status[0].level == DiagnosticStatus.OK
+    assert node.pipeline.counters['clouds'] == 3
