@@ -33,13 +33,6 @@ def _observed_count(integral: np.ndarray, rows: np.ndarray, cols: np.ndarray,
     return integral[r1, c1] - integral[r0, c1] - integral[r1, c0] + integral[r0, c0]
 
 
-def observed_near(raster: np.ndarray, reach_px: int) -> np.ndarray:
-    """(H, W) bool: some observed cell lies within reach_px cells (Chebyshev distance)."""
-    h, w = raster.shape[1:]
-    rows, cols = np.meshgrid(np.arange(h), np.arange(w), indexing='ij')
-    return _observed_count(_integral(raster), rows, cols, max(reach_px, 0)) > 0
-
-
 def keep_observed(lanes: list[np.ndarray], confidences: np.ndarray, raster: np.ndarray,
                   resolution_m: float, reach_m: float, min_length_m: float = 2.0
                   ) -> tuple[list[np.ndarray], np.ndarray]:

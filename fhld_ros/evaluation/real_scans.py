@@ -29,6 +29,7 @@ from fhld_ros.errors import CliError
 from fhld_ros.importing.kitti import read_bin
 from fhld_ros.pipeline import LaneDetector, LanePipeline
 from fhld_ros.ros.parameters import DetectorParams
+from fhld_ros.training.samples import scale_intensity
 from msg_adapters.family import rosbags_family
 from msg_adapters.pointcloud2 import create_cloud
 
@@ -111,10 +112,8 @@ def sweep_cloud(points: np.ndarray, gain: float, stamp_ns: int = 0,
                 frame_id: str = 'lidar') -> Any:
     """A rosbags PointCloud2 of the sweep (importing.pcd.XYZI_DTYPE), intensity times gain."""
     family = rosbags_family()
-    data = points.copy()
-    data['intensity'] *= np.float32(gain)
     return create_cloud(family.cls('sensor_msgs/msg/PointCloud2'),
-                        family.header(stamp_ns, frame_id), data)
+                        family.header(stamp_ns, frame_id), scale_intensity(points, gain))
 
 
 def detect_sweep(params: DetectorParams, detector: LaneDetector, points: np.ndarray,
