@@ -8,7 +8,7 @@ training/serving skew. Conventions (fixed, docs/design.md §3):
 * The window is the half-open square [-L/2, L/2)^2, L = size_px * resolution_m. Cell
   (row iy, col ix) = (floor((y + L/2)/res), floor((x + L/2)/res)); raster layout (C, H, W).
 * Channels (FHLD "Problem Definition"), all float32 in [0, 1], formulas below:
-  0 mean intensity  mean of the per-sweep normalised intensity (normalize_intensity)
+  0 mean intensity  mean of the per-sweep encoded intensity (intensity.py: absolute or contrast)
   1 density         log1p(count) / log1p(DENSITY_REF_COUNT), clipped
   2 height var.     population variance of z (m^2) / HEIGHT_VAR_REF_M2, clipped
   3 min height      (min z - MIN_HEIGHT_LOW_M) / (MIN_HEIGHT_HIGH_M - MIN_HEIGHT_LOW_M), clipped
@@ -23,8 +23,6 @@ from dataclasses import dataclass
 import numpy as np
 
 # --- normalisation constants of the channel formulas (RasterAccumulator.encode) ---
-INTENSITY_FULL_SCALES = (1.0, 255.0, 65535.0)  # 0-1 float, 8-bit / Velodyne, 16-bit sensors
-INTENSITY_PERCENTILE = 99.9  # robust "max" of a sweep when picking its full scale
 DENSITY_REF_COUNT = 16  # points per cell that saturate the density channel
 HEIGHT_VAR_REF_M2 = 0.1  # variance (m^2) that saturates the height-variance channel
 MIN_HEIGHT_LOW_M = -3.0  # min height mapped to 0 (road is about -1.5..-2 m below the sensor)
@@ -77,30 +75,6 @@ def min_height_m(raster: np.ndarray) -> np.ndarray:
     raster = np.asarray(raster)
     z = raster[..., 3, :, :] * (MIN_HEIGHT_HIGH_M - MIN_HEIGHT_LOW_M) + MIN_HEIGHT_LOW_M
     return np.where(raster[..., 1, :, :] > 0, z, np.nan)
-
-
-def normalize_intensity(raw: np.ndarray, scale: float | None = None) -> np.ndarray:
-    """Raw intensity of one sweep -> float32 in [0, 1].
-
-    With ``scale=None`` the full scale is the smallest of INTENSITY_FULL_SCALES (1, 255, 65535)
-    that is >= the sweep's 99.9th percentile (the largest one if none is): 0-1 float sensors
-    -> 1; Velodyne-style 0-255 floats and Ouster calibrated reflectivity (uint16 holding 0-255)
-    -> 255; raw 16-bit signal -> 65535. The percentile ignores a few retro-reflector outliers,
-    which are then clipped to 1. Pass ``scale`` to fix it for a sensor (e.g. from a parameter)
-    so a dim sweep cannot switch scales. Non-finite values become 0.
-    """
-    values = np.asarray(raw, dtype=np.float32).reshape(-1)
-    if scale is None:
-        finite = values[np.isfinite(values)]
-        robust_max = float(np.percentile(finite, INTENSITY_PERCENTILE)) if finite.size else 0.0
-        scale = next((s for s in INTENSITY_FULL_SCALES if s >= robust_max),
-                     INTENSITY_FULL_SCALES[-1])
-    elif not scale > 0:
-        raise ValueError(f'intensity scale must be > 0, got {scale}')
-    out = values * np.float32(1.0 / scale)
-    np.clip(out, 0.0, 1.0, out=out)
-    out[~np.isfinite(out)] = 0.0  # clip keeps NaN
-    return out
 
 
 class _Scratch:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from typing import Generic, TypeVar
 
 import numpy as np
 import torch
@@ -23,9 +24,22 @@ from fhld_ros.rolling_grid import BevWindow
 from fhld_ros.ros.parameters import DetectorParams
 
 Detector = Callable[[BevWindow], tuple[list[np.ndarray], np.ndarray]]
+T = TypeVar('T')
 # the FHLD readings of one detection that `fhld testset` scores side by side
 FHLD_VARIANTS = ('fhld', 'fhld-model-z', 'fhld-global')
 CURVE_POINTS = 200  # samples per global curve for 'fhld-global'
+
+
+class Encoded(Generic[T]):
+    """A detector with the intensity encoding (intensity.py) its windows must be made with,
+    which a model's checkpoint records: LanePipeline and training_samples read it."""
+
+    def __init__(self, detect: Callable[[BevWindow], T], intensity_encoding: str) -> None:
+        self.detect = detect
+        self.intensity_encoding = intensity_encoding
+
+    def __call__(self, window: BevWindow) -> T:
+        return self.detect(window)
 
 
 def classical_detector() -> Detector:
@@ -50,7 +64,7 @@ def load_fhld_model(params: DetectorParams) -> FhldDetector:
 
 
 def fhld_detections(params: DetectorParams, eager: bool = False,
-                    curve_points: int = 0) -> Callable[[BevWindow], Detections]:
+                    curve_points: int = 0) -> Encoded[Detections]:
     """BevWindow -> the model's Detections (lanes, confidences, curve_points-sampled curves).
 
     The backbone runs as the node serves it (serving_features: ONNX Runtime or TorchScript,
@@ -74,10 +88,10 @@ def fhld_detections(params: DetectorParams, eager: bool = False,
                             curve_points=curve_points, refine_heights=params.refine_heights,
                             refine_steps=params.local_refine_steps,
                             features=None if features is None else features(raster))[0]
-    return detect
+    return Encoded(detect, model.cfg.intensity_encoding)
 
 
-def fhld_detector(params: DetectorParams) -> Detector:
+def fhld_detector(params: DetectorParams) -> Encoded[tuple[list[np.ndarray], np.ndarray]]:
     """The FHLD model from params.checkpoint (default: the shipped weights), as served; lanes
     keep only their parts near observed ground (evidence.py, params.evidence_reach_m)."""
     detections = fhld_detections(params)
@@ -86,11 +100,11 @@ def fhld_detector(params: DetectorParams) -> Detector:
         found = detections(window)
         return keep_observed(found.lanes, found.confidences, window.raster,
                              window.spec.resolution_m, params.evidence_reach_m)
-    return detect
+    return Encoded(detect, detections.intensity_encoding)
 
 
 def fhld_variants(params: DetectorParams,
-                  eager: bool = True) -> Callable[[BevWindow], dict[str, list[np.ndarray]]]:
+                  eager: bool = True) -> Encoded[dict[str, list[np.ndarray]]]:
     """BevWindow -> {FHLD_VARIANTS name: lanes}, all from ONE model.detect call.
 
     'fhld' the final lanes (heights refined from the measured surface), 'fhld-model-z' the
@@ -110,7 +124,7 @@ def fhld_variants(params: DetectorParams,
         refined = refine_lane_heights(found.lanes, window.raster, window.spec.resolution_m)
         return {'fhld': observed(refined, window), 'fhld-model-z': observed(found.lanes, window),
                 'fhld-global': found.curves}
-    return detect
+    return Encoded(detect, detections.intensity_encoding)
 
 
 def make_detector(params: DetectorParams) -> Detector:

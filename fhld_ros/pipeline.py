@@ -27,6 +27,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from fhld_ros.bev import BevSpec
+from fhld_ros.intensity import ABSOLUTE
 from fhld_ros.rolling_grid import BevWindow, RollingBevGrid
 from fhld_ros.ros.parameters import DetectorParams
 from msg_adapters.family import stamp_to_ns
@@ -42,8 +43,10 @@ MAX_PENDING = 32  # waiting sweeps at most, whatever the stamps say (memory boun
 
 
 class LaneDetector(Protocol):
-    def __call__(self, window: BevWindow) -> tuple[list[np.ndarray], np.ndarray]:
-        """Lanes ((K, 3) window frame, ordered) and confidences of one window."""
+    """Lanes ((K, 3) window frame, ordered) and confidences of one window. A detector may name
+    the intensity encoding its windows need (attribute intensity_encoding, default absolute)."""
+
+    def __call__(self, window: BevWindow) -> tuple[list[np.ndarray], np.ndarray]: ...
 
 
 @dataclass
@@ -169,7 +172,8 @@ class LanePipeline:
         # False when it is known that no odometry will come (a bag without it): no sweep waits
         self.expect_odometry = expect_odometry
         self.grid = RollingBevGrid(BevSpec(params.size_px, params.resolution_m),
-                                   params.accumulate_sec, params.max_sweeps)
+                                   params.accumulate_sec, params.max_sweeps,
+                                   getattr(detector, 'intensity_encoding', ABSOLUTE))
         self.odometry = PoseBuffer()
         self.odom_frame: str | None = None
         self.odom_child: str | None = None

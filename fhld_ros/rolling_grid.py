@@ -17,13 +17,13 @@ from fhld_ros.bev import (
     Z_REBASE_M,
     BevSpec,
     RasterAccumulator,
-    normalize_intensity,
     pack_count_intensity,
     pack_heights,
     pixel_coords,
     window_affine,
     yaw_frame,
 )
+from fhld_ros.intensity import ABSOLUTE, IntensityEncoder
 
 
 @dataclass(frozen=True)
@@ -106,10 +106,11 @@ class RollingBevGrid:
     """
 
     def __init__(self, spec: BevSpec = BevSpec(), accumulate_sec: float = 1.0,
-                 max_sweeps: int = 10) -> None:
+                 max_sweeps: int = 10, intensity_encoding: str = ABSOLUTE) -> None:
         if not accumulate_sec >= 0 or max_sweeps < 1:
             raise ValueError('RollingBevGrid needs accumulate_sec >= 0 and max_sweeps >= 1')
         self.spec = spec
+        self.encode_intensity = IntensityEncoder(intensity_encoding)
         self.accumulate_ns = round(accumulate_sec * 1e9)
         self.max_sweeps = int(max_sweeps)
         self._sweeps: deque[_Sweep] = deque()
@@ -130,7 +131,9 @@ class RollingBevGrid:
         """Add one sweep: sensor-frame points and the sensor pose at the sweep stamp.
 
         Use the identity pose without odometry. Points with a non-finite coordinate or
-        intensity are dropped. Returns True if the grid was reset (stamp older than newest).
+        intensity are dropped. intensity_scale fixes the absolute encoding's full scale (the
+        contrast encoding needs none). Returns True if the grid was reset (stamp older than
+        newest).
         """
         stamp_ns = int(stamp_ns)
         pose = np.asarray(sensor_to_output, dtype=np.float64)
@@ -146,7 +149,9 @@ class RollingBevGrid:
         x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
         finite = np.isfinite(x + y + z + raw.astype(np.float32, copy=False))  # NaN/inf spread
         if not finite.all():
-            x, y, z, raw = x[finite], y[finite], z[finite], raw[finite]
+            xyz, raw = xyz[finite], raw[finite]
+            x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+        intensity01 = self.encode_intensity(xyz, raw, intensity_scale)
         z_ref = self._z_ref_for(pose[2, 3])
         # rotate into output-frame axes (elementwise, as in pixel_coords)
         rot = pose[:3, :3].astype(np.float32)
@@ -157,8 +162,8 @@ class RollingBevGrid:
             out[k] += z * rot[k, 2]
         e = out[2]
         e += np.float32(pose[2, 3] - z_ref)
-        self._sweeps.append(_Sweep(stamp_ns, pose, out[:2], e, z_ref, pack_count_intensity(
-            normalize_intensity(raw, intensity_scale)), pack_heights(e)))
+        self._sweeps.append(_Sweep(stamp_ns, pose, out[:2], e, z_ref,
+                                   pack_count_intensity(intensity01), pack_heights(e)))
         self._evict()
         return reset
 

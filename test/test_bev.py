@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from fhld_ros import bev
-from fhld_ros.bev import BevSpec, normalize_intensity, rasterize
+from fhld_ros.bev import BevSpec, rasterize
 from fhld_ros.commands import bench_stages
+from fhld_ros.intensity import normalize_intensity
 from fhld_ros.rolling_grid import RollingBevGrid
 
 SPEC = BevSpec()

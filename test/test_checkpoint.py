@@ -198,4 +198,17 @@ def test_oversized_or_mistyped_configs_are_refused_before_a_model_is_built(
 def test_every_config_field_is_bounded():
     assert {f.name for f in dataclasses.fields(FhldConfig)} == (
         set(config_module._INT_BOUNDS) | set(config_module._FLOAT_FIELDS)
-        | set(config_module._BOOL_FIELDS) | {'widths'})
+        | set(config_module._BOOL_FIELDS) | {'widths', 'intensity_encoding'})
+
+
+def test_checkpoints_from_before_the_contrast_encoding_read_absolute_intensity(tmp_path):
+    path = save_checkpoint(tmp_path / 'old.pt', FhldDetector(small_config()), 'x')
+    assert load_checkpoint(path).config.intensity_encoding == 'contrast'
+    payload = torch.load(path, weights_only=True)
+    del payload['config']['intensity_encoding']
+    torch.save(payload, path)
+    assert load_checkpoint(path).config.intensity_encoding == 'absolute'
+    payload['config']['intensity_encoding'] = 'relative'
+    torch.save(payload, path)
+    with pytest.raises(CheckpointError, match='intensity_encoding must be one of'):
+        load_checkpoint(path)

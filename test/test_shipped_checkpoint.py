@@ -25,10 +25,11 @@ MIN_F1_10 = 68.0  # shipped weights: 73.5 (test set: 88.1)
 @pytest.fixture(scope='module')
 def windows():
     settings = CacheSettings(windows_per_seed=1)
+    encoding = load_checkpoint(DEFAULT_CHECKPOINT).config.intensity_encoding
     samples = []
     for seed in SEEDS:
         sim = Simulator(seed, sweeps=settings.sweeps_per_seed, **scenario_for_seed(seed, settings))
-        samples.extend(training_samples(sim, 1, keep_window=True))
+        samples.extend(training_samples(sim, 1, keep_window=True, intensity_encoding=encoding))
     return samples
 
 

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from fhld_ros.bev import BevSpec, normalize_intensity
+from fhld_ros.bev import BevSpec
+from fhld_ros.intensity import normalize_intensity
 from fhld_ros.sim.layout import MAX_LINES_PER_WINDOW, TOPOLOGIES, max_lines_per_window
 from fhld_ros.sim.scene import GROUND_MATERIALS, PAINT
 from fhld_ros.sim.simulator import Simulator

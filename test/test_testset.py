@@ -12,6 +12,7 @@ import pytest
 
 from fhld_ros.evaluation import testset
 from fhld_ros.evaluation.testset import CONDITIONS, WORN_PAINT_CONTRAST
+from fhld_ros.intensity import ABSOLUTE, CONTRAST
 from fhld_ros.ros.parameters import DetectorParams
 from fhld_ros.sim.lidar import ouster_dtype, velodyne_dtype
 from fhld_ros.sim.simulator import Simulator
@@ -75,12 +76,16 @@ def test_units_conditions_force_the_intensity_field(name, field, kind, top):
 def test_gain_condition_changes_only_the_intensity_the_node_reads():
     sim = Simulator(2, sweeps=2, sensor='os1-32', columns=256, intensity='float')
     base, gained = (next(training_samples(sim, 1, sweeps_per_sample=2, keep_window=True,
-                                          intensity_gain=g)) for g in (1.0, 4.0))
+                                          intensity_gain=g, intensity_encoding=ABSOLUTE))
+                    for g in (1.0, 4.0))
     assert np.array_equal(base.window.points_window, gained.window.points_window)
     assert [a.tobytes() for a in base.lanes] == [a.tobytes() for a in gained.lanes]
     assert np.array_equal(base.raster[1:], gained.raster[1:])  # density and heights
     assert not np.array_equal(base.raster[0], gained.raster[0])  # intensity
     assert base.meta['paint_contrast'] == pytest.approx(gained.meta['paint_contrast'])
+    contrast = [next(training_samples(sim, 1, sweeps_per_sample=2, intensity_gain=g,
+                                      intensity_encoding=CONTRAST)).raster for g in (1.0, 4.0)]
+    np.testing.assert_allclose(contrast[0], contrast[1], atol=1e-6)  # the gain cancels
 
 
 def test_single_sweep_windows_hold_one_sweep_in_the_cloud_frame():

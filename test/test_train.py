@@ -17,7 +17,8 @@ from scipy.spatial import cKDTree
 
 from fhld_ros.bev import EMPTY_MIN_HEIGHT, BevSpec
 from fhld_ros.cli import main as fhld
-from fhld_ros.model.checkpoint import load_checkpoint
+from fhld_ros.model.checkpoint import load_checkpoint, save_checkpoint
+from fhld_ros.model.detector import FhldDetector
 from fhld_ros.sim.simulator import Simulator
 from fhld_ros.training.augment import (
     AugmentParams,
@@ -38,6 +39,7 @@ from fhld_ros.training.cache import (
     shard_path,
 )
 from fhld_ros.training.dataset import CacheDataset, collate
+from fhld_ros.training.loop import init_weights
 from fhld_ros.training.samples import training_samples
 
 pytestmark = pytest.mark.usefixtures('one_torch_thread')
@@ -95,7 +97,8 @@ def test_cache_round_trip_matches_the_simulator(caches):
     assert len(data) == 4 and data.size_px == 160 and data.resolution_m == RES
     sim = Simulator(1, sweeps=TINY.sweeps_per_seed, **meta['scenario'])
     samples = list(training_samples(sim, 2, sweeps_per_sample=2, stride=2,
-                                    spec=BevSpec(160, RES)))
+                                    spec=BevSpec(160, RES),
+                                    intensity_encoding=TINY.intensity_encoding))
     for k, sample in enumerate(samples):
         item = data[2 + k]
         assert (item['seed'], item['window']) == (1, k)
@@ -287,3 +290,14 @@ def test_ddp_gloo_two_processes(caches, tmp_path):
     assert meta['iteration'] == 2 and meta['world_size'] == 2
     assert len(meta['train_state']['rng']) == 2
     assert payload['train_command'].startswith('torchrun --nproc-per-node=2')
+
+
+def test_train_init_starts_from_another_checkpoints_weights(tmp_path):
+    source = FhldDetector(MODEL)
+    path = save_checkpoint(tmp_path / 'init.pt', source, 'x')
+    module = FhldDetector(MODEL)
+    init_weights(module, str(path))
+    for key, value in source.state_dict().items():
+        assert torch.equal(value, module.state_dict()[key]), key
+    with pytest.raises(ValueError, match='its layers differ from the model section'):
+        init_weights(FhldDetector(dataclasses.replace(MODEL, local_hidden=16)), str(path))

@@ -3,7 +3,8 @@
 The test set is fixed: seeds TEST_SEED_BASE .. +55 (unseen by training, which uses seeds from
 0), 4 windows each = 224 windows of 25.6 m, and with the cache's scenario rule these 56 seeds
 cover every sensor preset x topology pair. Each window goes through the node's own path
-(PointCloud2 -> read_xyzi -> RollingBevGrid); the detectors see the identical BevWindow:
+(PointCloud2 -> read_xyzi -> RollingBevGrid); the detectors see the identical BevWindow, with
+the FHLD checkpoint's intensity encoding when an FHLD row is asked for:
 
 * `classical`   rule-based baseline on the window's accumulated points
 * `fhld`        the FHLD model's final output (local branch points, heights refined from the
@@ -45,6 +46,7 @@ from fhld_ros.detectors import (
 )
 from fhld_ros.errors import CliError
 from fhld_ros.evaluation import metrics
+from fhld_ros.intensity import ABSOLUTE
 from fhld_ros.rolling_grid import BevWindow
 from fhld_ros.ros.parameters import DetectorParams
 from fhld_ros.sim.lidar import SENSORS
@@ -106,8 +108,10 @@ def _init(detectors: list[str], params: DetectorParams) -> None:
     _worker['detectors'] = detectors
     if 'classical' in detectors:
         _worker['classical'] = classical_detector()
+    _worker['encoding'] = ABSOLUTE
     if set(FHLD_VARIANTS) & set(detectors):
         _worker['fhld'] = fhld_variants(params, eager=True)
+        _worker['encoding'] = _worker['fhld'].intensity_encoding
 
 
 def _detect(window: BevWindow) -> dict[str, list[np.ndarray]]:
@@ -135,7 +139,7 @@ def evaluate_seed(seed: int, windows: int, sensor: str | None = None,
     once = {name: metrics.LaneCounts() for name in _worker['detectors']}
     count, contrast = 0, []
     for sample in training_samples(sim, windows, keep_window=True, intensity_gain=cond.gain,
-                                   **how):
+                                   intensity_encoding=_worker['encoding'], **how):
         contrast.append(sample.meta['paint_contrast'])
         half = sample.window.spec.length_m / 2
         for name, lanes in _detect(sample.window).items():

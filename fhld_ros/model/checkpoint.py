@@ -25,7 +25,7 @@ FORMAT = 'fhld-checkpoint'
 FORMAT_VERSION = 1
 # Config fields added after checkpoints existed, with the value those checkpoints were built
 # with (inference-only fields such as local_refine_steps take the current default instead).
-LEGACY_CONFIG_DEFAULTS: dict[str, Any] = {'stem_kernel': 7}
+LEGACY_CONFIG_DEFAULTS: dict[str, Any] = {'stem_kernel': 7, 'intensity_encoding': 'absolute'}
 # torch's weights_only refusal of a pickled class or callable; its wording varies between
 # releases ('Unsupported global: GLOBAL x.Y', 'unsupported GLOBAL posix.system whose ...').
 _UNSAFE_GLOBAL = re.compile(r'unsupported global:?\s*(?:global\s+)?([\w.]+)', re.IGNORECASE)

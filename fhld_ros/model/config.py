@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from fhld_ros.dataclass_dict import from_dict, to_plain
+from fhld_ros.intensity import INTENSITY_ENCODINGS
 
 
 @dataclass(frozen=True)
@@ -20,6 +21,9 @@ class FhldConfig:
     size_px: int = 640
     resolution_m: float = 0.04
     in_channels: int = 4
+    # How channel 0 reads intensity (fhld_ros/intensity.py): 'contrast' against each sweep's
+    # ground, the same on every sensor; 'absolute' for weights trained on full-scale intensity.
+    intensity_encoding: str = 'contrast'
 
     # Backbone: slim ResNet-18 (paper widths) + self-attention on the stride-32 map.
     widths: tuple[int, ...] = (16, 32, 64, 128)
@@ -123,6 +127,9 @@ class FhldConfig:
                 isinstance(w, int) and not isinstance(w, bool) and 1 <= w <= MAX_WIDTH
                 for w in widths):
             raise ValueError(f'widths must be 4 integers in [1, {MAX_WIDTH}], got {widths!r}')
+        if self.intensity_encoding not in INTENSITY_ENCODINGS:
+            raise ValueError(f'intensity_encoding must be one of '
+                             f'{", ".join(INTENSITY_ENCODINGS)}, got {self.intensity_encoding!r}')
         if self.size_px % 32:
             raise ValueError(f'size_px must be a multiple of 32, got {self.size_px}')
         if self.local_stride not in (4, 8, 16, 32):

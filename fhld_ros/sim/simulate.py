@@ -16,8 +16,8 @@ import numpy as np
 from tqdm import tqdm
 
 from fhld_ros.bagio import BagWriter, check_file_output, check_output, write_file_atomically
-from fhld_ros.bev import normalize_intensity
 from fhld_ros.errors import CliError
+from fhld_ros.intensity import normalize_intensity
 from fhld_ros.sim.layout import ROAD_CLASSES, TOPOLOGIES
 from fhld_ros.sim.lidar import DEFAULT_SENSOR, INTENSITY_SCALES, LAYOUTS, SENSORS
 from fhld_ros.sim.preview import BevPreview

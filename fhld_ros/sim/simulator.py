@@ -83,6 +83,7 @@ class SimConfig:
     # at most this many times the asphalt's
     paint_contrast: float | None = None
     markings: bool = True  # False: the same road with no paint at all (no lines, no GT)
+    mount_z: float | None = None  # sensor height above the road; default: the preset's
 
     def validate(self) -> None:
         def bad(msg: str) -> None:
@@ -108,6 +109,8 @@ class SimConfig:
             bad(f'odom_noise must be within 0..10, got {self.odom_noise:g}')
         if self.paint_contrast is not None and not 1.0 <= self.paint_contrast <= 20.0:
             bad(f'paint_contrast must be within 1..20, got {self.paint_contrast:g}')
+        if self.mount_z is not None and not 1.0 <= self.mount_z <= 3.0:
+            bad(f'mount_z must be within 1..3 m, got {self.mount_z:g}')
 
 
 @dataclass
@@ -203,7 +206,7 @@ class Simulator:
         surface = Surface(ref, layout, r_surface, road_class)
         static = place_static(r_static, ref, layout, surface, road_class)
         self.plan = ego_mod.plan_ego(r_ego, layout, duration, v0)
-        self.mount = ego_mod.Mount(z=self.preset.mount_z)
+        self.mount = ego_mod.Mount(z=config.mount_z or self.preset.mount_z)
         times = np.arange(planned) * PERIOD_S
         ego_s, ego_d, _ = self.plan.at(times)
         traffic = place_traffic(r_traffic, layout, ego_s, ego_d, times, v0, road_class)

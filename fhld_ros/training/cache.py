@@ -40,8 +40,9 @@ from tqdm import tqdm
 
 from fhld_ros.bev import BevSpec
 from fhld_ros.dataclass_dict import to_plain
+from fhld_ros.intensity import CONTRAST, INTENSITY_ENCODINGS
 from fhld_ros.sim.layout import TOPOLOGIES
-from fhld_ros.sim.lidar import SENSORS, SPINNING
+from fhld_ros.sim.lidar import INTENSITY_SCALES, SENSORS, SPINNING
 from fhld_ros.sim.simulator import Simulator
 from fhld_ros.training.samples import training_samples
 
@@ -65,6 +66,8 @@ class CacheSettings:
     topologies: tuple[str | None, ...] = ALL_TOPOLOGIES
     odom_noise_max: float = 1.0  # half the seeds drive with drift U(0, max), half exact
     motion_distortion_prob: float = 0.25
+    intensity_encoding: str = CONTRAST  # the model's (FhldConfig.intensity_encoding)
+    sensor_variation: bool = False  # training seeds only: sensor_variation() drawn per seed
 
     def validate(self) -> None:
         unknown = [s for s in self.sensors if s not in SENSORS]
@@ -78,6 +81,8 @@ class CacheSettings:
             raise ValueError('windows_per_seed, sweeps_per_sample and stride must be >= 1')
         if self.size_px < 1 or not self.resolution_m > 0:
             raise ValueError('size_px must be >= 1 and resolution_m > 0')
+        if self.intensity_encoding not in INTENSITY_ENCODINGS:
+            raise ValueError(f'unknown intensity encoding {self.intensity_encoding!r}')
 
     @property
     def sweeps_per_seed(self) -> int:
@@ -89,14 +94,41 @@ def scenario_for_seed(seed: int, settings: CacheSettings = CacheSettings()) -> d
     #sensors) mod #topologies, so n consecutive seeds cover min(n, #sensors) sensors and, when
     #sensors >= #topologies, every topology; with gcd(#sensors + 1, #topologies) = 1 (8
     sensors, 7 topologies by default) #sensors * #topologies consecutive seeds cover every pair.
-    Odometry drift and motion distortion are drawn from the seed."""
+    Odometry drift and motion distortion are drawn from the seed; with
+    settings.sensor_variation, and below TEST_SEED_BASE only (the test set stays what it is),
+    also what real sensors and roads vary (sensor_variation). 'intensity_gain' is for
+    training_samples, every other key a Simulator option."""
     ns, nt = len(settings.sensors), len(settings.topologies)
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x5CE7A]))
     drift = float(rng.uniform(0.0, settings.odom_noise_max)) if rng.random() < 0.5 else 0.0
-    return {'sensor': settings.sensors[seed % ns],
-            'topology': settings.topologies[(seed + seed // ns) % nt],
-            'odom_noise': round(drift, 3),
-            'motion_distortion': bool(rng.random() < settings.motion_distortion_prob)}
+    scenario = {'sensor': settings.sensors[seed % ns],
+                'topology': settings.topologies[(seed + seed // ns) % nt],
+                'odom_noise': round(drift, 3),
+                'motion_distortion': bool(rng.random() < settings.motion_distortion_prob)}
+    if settings.sensor_variation and seed < TEST_SEED_BASE:
+        scenario.update(sensor_variation(seed))
+    return scenario
+
+
+def sensor_variation(seed: int) -> dict:
+    """What real sensors and roads vary, drawn per training seed:
+
+    * paint: 60 % worn, beads gone, reflectance 1.3-8x the asphalt's (log-uniform); else the
+      fresh retro-reflective paint (~15-20x); 5 % of roads carry no markings at all
+    * units: 1/4 each the preset's own, uint16 reflectivity, 0-1 float, 0-255 counts
+    * gain: half the seeds x0.25-x4 (log-uniform; integer counts round and saturate)
+    * mount: half the seeds 1.4-2.5 m above the road instead of the preset's height
+    """
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 0x5E75]))
+    worn = rng.random() < 0.6
+    contrast = float(np.exp(rng.uniform(np.log(1.3), np.log(8.0))))
+    units = (None, *INTENSITY_SCALES)[int(rng.integers(4))]
+    gain = float(np.exp(rng.uniform(np.log(0.25), np.log(4.0)))) if rng.random() < 0.5 else 1.0
+    mount = float(rng.uniform(1.4, 2.5)) if rng.random() < 0.5 else None
+    return {'paint_contrast': round(contrast, 3) if worn else None,
+            'markings': bool(rng.random() >= 0.05), 'intensity': units,
+            'intensity_gain': round(gain, 3),
+            'mount_z': None if mount is None else round(mount, 3)}
 
 
 def shard_path(out_dir: str | os.PathLike, seed: int) -> Path:
@@ -106,11 +138,14 @@ def shard_path(out_dir: str | os.PathLike, seed: int) -> Path:
 def make_shard(seed: int, settings: CacheSettings) -> dict[str, np.ndarray]:
     """Simulate one seed's windows and pack them into the shard arrays."""
     scenario = scenario_for_seed(seed, settings)
-    sim = Simulator(seed, sweeps=settings.sweeps_per_seed, **scenario)
+    options = {k: v for k, v in scenario.items() if k != 'intensity_gain'}
+    sim = Simulator(seed, sweeps=settings.sweeps_per_seed, **options)
     spec = BevSpec(settings.size_px, settings.resolution_m)
     samples = list(training_samples(sim, settings.windows_per_seed,
                                     sweeps_per_sample=settings.sweeps_per_sample,
-                                    stride=settings.stride, spec=spec))
+                                    stride=settings.stride, spec=spec,
+                                    intensity_gain=scenario.get('intensity_gain', 1.0),
+                                    intensity_encoding=settings.intensity_encoding))
     lanes = [lane for s in samples for lane in s.lanes]
     counts = [len(s.lanes) for s in samples]
     arrays = {f'raster_{i:04d}': s.raster.astype(np.float16) for i, s in enumerate(samples)}

@@ -38,6 +38,8 @@ class DataSection:
     topologies: tuple[str | None, ...] = ALL_TOPOLOGIES
     odom_noise_max: float = 1.0
     motion_distortion_prob: float = 0.25
+    # training seeds draw sensor and road variation (cache.sensor_variation); held-out never
+    sensor_variation: bool = False
     cache_workers: int = 2
 
 
@@ -61,6 +63,9 @@ class TrainSection:
     eval_windows: int = 0  # test windows per evaluation, evenly spread (0: all)
     eval_batch_size: int = 2
     score_threshold: float = 0.5
+    # a checkpoint whose weights start the run (fine-tuning); '' = random initialisation.
+    # Only the weights: the model section must build the same layers; a resume ignores it
+    init: str = ''
 
 
 @dataclass(frozen=True)
@@ -135,4 +140,6 @@ def cache_settings(cfg: TrainConfig, split: str) -> CacheSettings:
         size_px=d.train_size_px if train else model.size_px,
         resolution_m=model.resolution_m, sweeps_per_sample=d.sweeps_per_sample,
         stride=d.stride, sensors=tuple(d.sensors), topologies=tuple(d.topologies),
-        odom_noise_max=d.odom_noise_max, motion_distortion_prob=d.motion_distortion_prob)
+        odom_noise_max=d.odom_noise_max, motion_distortion_prob=d.motion_distortion_prob,
+        intensity_encoding=model.intensity_encoding,
+        sensor_variation=d.sensor_variation and train)

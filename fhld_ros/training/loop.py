@@ -26,6 +26,7 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, DistributedSampler
 
 from fhld_ros.evaluation.metrics import PointCounts, point_counts
+from fhld_ros.model.checkpoint import load_checkpoint
 from fhld_ros.model.config import FhldConfig
 from fhld_ros.model.detector import FhldDetector
 from fhld_ros.model.losses import FhldCriterion
@@ -114,6 +115,8 @@ def start_run(cfg: TrainConfig, out_dir: Path, dist: Dist, resume: bool, command
     opt = torch.optim.Adam(module.parameters(), lr=t.lr, weight_decay=t.weight_decay)
     torch.manual_seed(rank_seed(cfg.seed, dist))  # anchor noise / negatives differ per rank
     state = RunState()
+    if t.init and not (resume and (out_dir / 'last.pt').exists()):
+        init_weights(module, t.init)
     if resume and (out_dir / 'last.pt').exists():
         state = resume_run(out_dir / 'last.pt', module, opt, model_cfg, cfg.seed, dist)
         if dist.main:
@@ -127,6 +130,16 @@ def start_run(cfg: TrainConfig, out_dir: Path, dist: Dist, resume: bool, command
                                      if dist.device.type == 'cuda' else None)
              if dist.world > 1 else module)
     return Run(cfg, dist, out_dir, module, model, opt, FhldCriterion(model_cfg), state)
+
+
+def init_weights(module: FhldDetector, path: str) -> None:
+    """Start from another checkpoint's weights (train.init); its layers must match."""
+    source = load_checkpoint(path).model.state_dict()
+    try:
+        module.load_state_dict(source)
+    except RuntimeError as exc:
+        raise ValueError(f'train.init {path}: its layers differ from the model section\'s: '
+                         f'{str(exc).splitlines()[0]}') from exc
 
 
 def datasets(cfg: TrainConfig, dist: Dist) -> tuple[CacheDataset, CacheDataset]:

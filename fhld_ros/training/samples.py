@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fhld_ros.bev import BevSpec, yaw_frame
+from fhld_ros.intensity import CONTRAST
 from fhld_ros.rolling_grid import BevWindow, RollingBevGrid
 from fhld_ros.sim.gt_lines import clip_to_square
 from fhld_ros.sim.scene import ASPHALT, PAINT
@@ -78,7 +79,8 @@ def _window_sweeps(n_sweeps: int, n: int | None, per_sample: int, stride: int, s
 def training_samples(sim: Simulator, n: int | None = None, sweeps_per_sample: int = 10,
                      stride: int | None = None, spec: BevSpec | None = None,
                      keep_window: bool = False, intensity_gain: float = 1.0,
-                     odometry: bool = True, start: int = 0) -> Iterator[TrainingSample]:
+                     odometry: bool = True, start: int = 0,
+                     intensity_encoding: str = CONTRAST) -> Iterator[TrainingSample]:
     """Up to n samples (default: as many as the run allows), one every `stride` sweeps
     (default sweeps_per_sample), each accumulating the last sweeps_per_sample sweeps (1 s);
     the first window ends at sweep start + sweeps_per_sample - 1.
@@ -89,8 +91,9 @@ def training_samples(sim: Simulator, n: int | None = None, sweeps_per_sample: in
     work on points, such as the classical baseline); it keeps the window's sweeps alive.
     intensity_gain multiplies each cloud's intensity field (scale_intensity) before decoding.
     odometry=False is the node without /odom: single sweeps (sweeps_per_sample must be 1)
-    in the cloud's own frame, and GT in that frame. meta['paint_contrast'] is the newest
-    sweep's paint_contrast.
+    in the cloud's own frame, and GT in that frame. intensity_encoding is the grid's (the
+    model's, FhldConfig.intensity_encoding). meta['paint_contrast'] is the newest sweep's
+    paint_contrast.
     """
     spec = spec or BevSpec()
     stride = stride or sweeps_per_sample
@@ -104,7 +107,7 @@ def training_samples(sim: Simulator, n: int | None = None, sweeps_per_sample: in
     fam = rosbags_family()
     cloud_cls = fam.cls('sensor_msgs/msg/PointCloud2')
     grid = RollingBevGrid(spec, accumulate_sec=sweeps_per_sample * 0.1 - 0.05,
-                          max_sweeps=sweeps_per_sample)
+                          max_sweeps=sweeps_per_sample, intensity_encoding=intensity_encoding)
     for k, newest in _window_sweeps(len(sim), n, sweeps_per_sample, stride, start):
         sweep = sim.sweep(k)
         points = scale_intensity(sweep.points, intensity_gain)

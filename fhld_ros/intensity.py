@@ -1,0 +1,121 @@
+"""Intensity encodings: a sweep's raw intensity field -> the [0, 1] values the BEV raster averages.
+
+Sensors disagree on what intensity means: 0-1 floats, 0-255 counts, uint16 reflectivity, and
+any gain from one unit to the next. Two encodings (docs/design.md §3); a checkpoint records the
+one its model was trained with (FhldConfig.intensity_encoding):
+
+* ``absolute``: raw / full scale, the full scale inferred per sweep (1, 255 or 65535) unless
+  given. The model then learns one simulator's brightness: a gain of x2 changes its lanes.
+* ``contrast``: raw / the sweep's own ground level * GROUND_LEVEL. Paint is read by how much
+  brighter it is than the road around it, so units and gain cancel (up to quantisation and
+  saturation of the sensor's own counts).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+ABSOLUTE, CONTRAST = 'absolute', 'contrast'
+INTENSITY_ENCODINGS = (ABSOLUTE, CONTRAST)
+INTENSITY_FULL_SCALES = (1.0, 255.0, 65535.0)  # 0-1 float, 8-bit / Velodyne, 16-bit sensors
+INTENSITY_PERCENTILE = 99.9  # robust "max" of a sweep when picking its full scale
+# contrast: the ground level maps here, so paint up to 1 / GROUND_LEVEL = 20x the road stays
+# below saturation (fresh simulated paint is 15-20x; the asphalt sits at 0.02-0.07 in the
+# absolute encoding)
+GROUND_LEVEL = 0.05
+GROUND_RANGE_M = (2.5, 20.0)  # horizontal range of the returns the ground level is taken from
+GROUND_CELL_M = 2.0  # a return is ground within GROUND_BAND_M of the lowest one of its cell
+GROUND_BAND_M = 0.15
+GROUND_BELOW_SENSOR_M = 0.5  # and at least this far below the sensor (not roofs, not walls)
+GROUND_QUANTILE = 75.0  # level = mean of the ground values up to this percentile (no paint)
+GROUND_MIN_POINTS = 200  # fewer ground returns: the previous sweep's level is kept
+
+
+def normalize_intensity(raw: np.ndarray, scale: float | None = None) -> np.ndarray:
+    """The absolute encoding: raw intensity of one sweep -> float32 in [0, 1].
+
+    With ``scale=None`` the full scale is the smallest of INTENSITY_FULL_SCALES (1, 255, 65535)
+    that is >= the sweep's 99.9th percentile (the largest one if none is): 0-1 float sensors
+    -> 1; Velodyne-style 0-255 floats and Ouster calibrated reflectivity (uint16 holding 0-255)
+    -> 255; raw 16-bit signal -> 65535. The percentile ignores a few retro-reflector outliers,
+    which are then clipped to 1. Pass ``scale`` to fix it for a sensor (e.g. from a parameter)
+    so a dim sweep cannot switch scales. Non-finite values become 0.
+    """
+    values = np.asarray(raw, dtype=np.float32).reshape(-1)
+    if scale is None:
+        finite = values[np.isfinite(values)]
+        robust_max = float(np.percentile(finite, INTENSITY_PERCENTILE)) if finite.size else 0.0
+        scale = next((s for s in INTENSITY_FULL_SCALES if s >= robust_max),
+                     INTENSITY_FULL_SCALES[-1])
+    elif not scale > 0:
+        raise ValueError(f'intensity scale must be > 0, got {scale}')
+    out = values * np.float32(1.0 / scale)
+    np.clip(out, 0.0, 1.0, out=out)
+    out[~np.isfinite(out)] = 0.0  # clip keeps NaN
+    return out
+
+
+def ground_mask(xyz_sensor: np.ndarray) -> np.ndarray:
+    """(N,) bool: returns that lie on the ground near the sensor (sensor-frame points).
+
+    Local, so neither the mount height nor a few degrees of pitch or roll matter: a return is
+    ground when it lies within GROUND_BAND_M of the lowest return of its GROUND_CELL_M square
+    cell, GROUND_RANGE_M away horizontally and GROUND_BELOW_SENSOR_M below the sensor.
+    """
+    x, y, z = (np.asarray(xyz_sensor, dtype=np.float32).reshape(-1, 3).T)
+    lo, hi = GROUND_RANGE_M
+    r2 = x * x + y * y
+    near = (r2 >= lo * lo) & (r2 <= hi * hi) & (z < -GROUND_BELOW_SENSOR_M)
+    index = np.flatnonzero(near)
+    side = int(np.ceil(2 * hi / GROUND_CELL_M))
+    cell = (np.clip(((x[index] + hi) / GROUND_CELL_M).astype(np.intp), 0, side - 1) * side
+            + np.clip(((y[index] + hi) / GROUND_CELL_M).astype(np.intp), 0, side - 1))
+    lowest = np.full(side * side, np.inf, dtype=np.float32)
+    np.minimum.at(lowest, cell, z[index])
+    mask = np.zeros(x.shape[0], dtype=bool)
+    mask[index] = z[index] - lowest[cell] < GROUND_BAND_M
+    return mask
+
+
+def ground_level(values: np.ndarray) -> float | None:
+    """Typical raw intensity of ground returns: the mean of those up to their GROUND_QUANTILE
+    percentile, so paint (a few % of the ground) stays out while a mean, unlike a median, keeps
+    some resolution in coarse integer counts. None with too few returns or an all-zero road."""
+    values = np.asarray(values, dtype=np.float64)
+    values = values[np.isfinite(values)]
+    if values.size < GROUND_MIN_POINTS:
+        return None
+    typical = values[values <= np.percentile(values, GROUND_QUANTILE)]
+    level = float(typical.mean()) if typical.size else 0.0
+    if level <= 0:  # road quantised to 0 counts, paint not: the mean of all is still a level
+        level = float(values.mean())
+    return level if level > 0 else None
+
+
+class IntensityEncoder:
+    """Per-sweep encoding of raw intensity, remembering the last ground level (contrast).
+
+    A sweep with too few ground returns (a cloud of only walls, a tiny test cloud) is encoded
+    with the previous sweep's level, or with its own robust mean when it is the first.
+    """
+
+    def __init__(self, encoding: str = ABSOLUTE) -> None:
+        if encoding not in INTENSITY_ENCODINGS:
+            raise ValueError(f'unknown intensity encoding {encoding!r} (choose from '
+                             f'{", ".join(INTENSITY_ENCODINGS)})')
+        self.encoding = encoding
+        self.level: float | None = None
+
+    def __call__(self, xyz_sensor: np.ndarray, raw: np.ndarray,
+                 scale: float | None = None) -> np.ndarray:
+        """(N,) float32 in [0, 1]; scale is the absolute encoding's fixed full scale."""
+        if self.encoding == ABSOLUTE:
+            return normalize_intensity(raw, scale)
+        raw = np.asarray(raw).reshape(-1)
+        level = ground_level(raw[ground_mask(xyz_sensor)])
+        if level is None:
+            level = self.level if self.level is not None else ground_level(raw)
+        else:
+            self.level = level
+        if level is None:  # no intensity at all: nothing stands out
+            return np.zeros(raw.shape[0], dtype=np.float32)
+        return normalize_intensity(raw, level / GROUND_LEVEL)
