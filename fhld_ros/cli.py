@@ -10,7 +10,7 @@ import argparse
 import importlib
 import sys
 
-from fhld_ros.errors import CliError
+from fhld_ros.errors import ConfigError
 
 # subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser(chosen).parse_args(argv)
     try:
         return int(args._module.run(args) or 0)
-    except CliError as exc:
+    except ConfigError as exc:
         print(f'fhld {args.command}: error: {exc}', file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -1,7 +1,7 @@
 """Detector back-ends behind one call: BevWindow -> (lanes in window frame, confidences).
 
 The FHLD model is loaded here and nowhere else (checkpoint default, threads, device, errors as
-CliError), for the node, `fhld replay`, `fhld demo` and `fhld testset`.
+ConfigError), for the node, `fhld replay`, `fhld demo` and `fhld testset`.
 """
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from fhld_ros.classical import ClassicalLaneDetector
-from fhld_ros.errors import CliError
+from fhld_ros.errors import ConfigError
 from fhld_ros.evidence import keep_observed
 from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT, CheckpointError, load_checkpoint
 from fhld_ros.model.config import FhldConfig
@@ -53,13 +53,13 @@ def load_fhld_model(params: DetectorParams) -> FhldDetector:
     # torch runs the post-processing (and TorchScript): small ops, fastest on one thread here
     torch.set_num_threads(params.model_threads if params.model_threads > 0 else 1)
     if params.device == 'cuda' and not torch.cuda.is_available():
-        raise CliError("device 'cuda' was asked for but torch sees no CUDA device")
+        raise ConfigError("device 'cuda' was asked for but torch sees no CUDA device")
     expect = FhldConfig(size_px=params.size_px, resolution_m=params.resolution_m)
     try:
         loaded = load_checkpoint(params.checkpoint or DEFAULT_CHECKPOINT, expect=expect,
                                  map_location=params.device)
     except CheckpointError as exc:
-        raise CliError(str(exc)) from exc
+        raise ConfigError(str(exc)) from exc
     return loaded.model.to(params.device).eval()
 
 
@@ -78,7 +78,7 @@ def fhld_detections(params: DetectorParams, eager: bool = False,
             features = serving_features(model, params.device, params.model_runtime,
                                         params.model_threads)
         except ValueError as exc:
-            raise CliError(str(exc)) from exc
+            raise ConfigError(str(exc)) from exc
         cfg = model.cfg  # build the graph now, not on the first sweep (export/trace takes ~2 s)
         features(torch.zeros(1, cfg.in_channels, cfg.size_px, cfg.size_px, device=params.device))
 

@@ -1,5 +1,15 @@
-"""Errors meant for the user: the CLI prints them as one line and exits with status 2."""
+"""The one user-facing error: `fhld` and `lane_detector` print it as one line and exit 2.
+
+Raise ConfigError for anything the user gave that cannot be used: a parameter, a config or
+parameter file, a checkpoint (model.checkpoint.CheckpointError), a bag (bagio.BagError), a
+command-line argument. Its message names the value or file and the problem; nothing else is
+printed (no traceback). It is a ValueError, so callers that check values keep working.
+"""
 
 
-class CliError(Exception):
-    """A user-facing error whose message names the problem."""
+class ConfigError(ValueError):
+    """A value or file from the user that cannot be used; the message names it."""
+
+
+# The name it had when only the CLI used it; kept so `except CliError` still catches everything.
+CliError = ConfigError

@@ -28,6 +28,7 @@ GROUND_BAND_M = 0.15
 GROUND_BELOW_SENSOR_M = 0.5  # and at least this far below the sensor (not roofs, not walls)
 GROUND_QUANTILE = 75.0  # level = mean of the ground values up to this percentile (no paint)
 GROUND_MIN_POINTS = 200  # fewer ground returns: the previous sweep's level is kept
+GROUND_SAMPLE = 65536  # the level is taken from at most about this many returns (every k-th)
 
 
 def normalize_intensity(raw: np.ndarray, scale: float | None = None) -> np.ndarray:
@@ -111,7 +112,9 @@ class IntensityEncoder:
         if self.encoding == ABSOLUTE:
             return normalize_intensity(raw, scale)
         raw = np.asarray(raw).reshape(-1)
-        level = ground_level(raw[ground_mask(xyz_sensor)])
+        step = max(1, raw.shape[0] // GROUND_SAMPLE)  # a 128 x 2048 sweep: a quarter is plenty
+        sample = np.asarray(xyz_sensor).reshape(-1, 3)[::step]
+        level = ground_level(raw[::step][ground_mask(sample)])
         if level is None:
             level = self.level if self.level is not None else ground_level(raw)
         else:

@@ -232,3 +232,70 @@ def test_stamps_from_another_drive(tmp_path: Path, capsys: pytest.CaptureFixture
     gt = write_gt(tmp_path / 'gt', road(), stamps=(100 * SEC,))
     err = run_error(capsys, str(write_pred(tmp_path / 'pred', pred_frames())), str(gt))
     assert 'before the first /lanes_gt' in err and 'same drive' in err
+
+
+# --- outputs: never delete what eval did not write (bagio's rule) -------------------------
+
+def _tree(path: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob('*'))
+            if p.is_file()}
+
+
+def test_an_existing_per_frame_csv_is_replaced_only_with_overwrite(
+        tmp_path: Path, gt_bag: Path, capsys: pytest.CaptureFixture) -> None:
+    pred = write_pred(tmp_path / 'pred', pred_frames())
+    csv_path = tmp_path / 'frames.csv'
+    csv_path.write_text('mine\n')
+    err = run_error(capsys, str(pred), str(gt_bag), '--per-frame', str(csv_path))
+    assert err == (f'fhld eval: error: --per-frame {csv_path} exists (use --overwrite to '
+                   'replace it)')
+    assert csv_path.read_text() == 'mine\n'
+    run_json(capsys, str(pred), str(gt_bag), '--per-frame', str(csv_path), '--overwrite')
+    assert csv_path.read_text().startswith('frame,stamp_ns,')
+    link = tmp_path / 'link.csv'
+    link.symlink_to(tmp_path / 'elsewhere.csv')
+    err = run_error(capsys, str(pred), str(gt_bag), '--per-frame', str(link), '--overwrite')
+    assert err.endswith('exists and is a symbolic link: not replaced')
+
+
+def test_existing_plots_are_replaced_only_with_overwrite(
+        tmp_path: Path, gt_bag: Path, capsys: pytest.CaptureFixture) -> None:
+    pred = write_pred(tmp_path / 'pred', pred_frames())
+    plots = tmp_path / 'plots'
+    plots.mkdir()
+    (plots / 'notes.txt').write_text('mine')
+    (plots / 'frame_00001.png').write_bytes(b'mine')
+    err = run_error(capsys, str(pred), str(gt_bag), '--plots', str(plots), '--worst', '2')
+    assert err == (f'fhld eval: error: --plots {plots}/frame_00001.png exists (use --overwrite '
+                   'to replace it)')
+    assert _tree(plots) == {'notes.txt': b'mine', 'frame_00001.png': b'mine'}  # none written
+    run_json(capsys, str(pred), str(gt_bag), '--plots', str(plots), '--worst', '2',
+             '--overwrite')
+    assert sorted(_tree(plots)) == ['frame_00000.png', 'frame_00001.png', 'notes.txt']
+    assert (plots / 'frame_00001.png').read_bytes()[:4] == b'\x89PNG'
+    assert (plots / 'notes.txt').read_text() == 'mine'  # what eval does not write is left alone
+    (tmp_path / 'file').write_text('mine')
+    err = run_error(capsys, str(pred), str(gt_bag), '--plots', str(tmp_path / 'file'))
+    assert err == f'fhld eval: error: --plots {tmp_path}/file exists and is not a directory'
+
+
+@pytest.mark.parametrize('where', ['PRED_BAG', 'GT_BAG'])
+def test_outputs_equal_to_or_inside_an_input_bag_are_refused_even_with_overwrite(
+        tmp_path: Path, capsys: pytest.CaptureFixture, where: str) -> None:
+    pred = write_pred(tmp_path / 'pred', pred_frames())
+    gt = write_gt(tmp_path / 'gt', road())
+    bag = pred if where == 'PRED_BAG' else gt
+    before = _tree(bag)
+    storage = next(p for p in bag.iterdir() if p.suffix == '.mcap')
+    for option, target, says in (
+            ('--per-frame', bag, f'--per-frame {bag} is {where} {bag}'),
+            ('--per-frame', storage, f'--per-frame {storage} is inside {where} {bag}'),
+            ('--plots', bag, f'--plots {bag}/frame_00000.png is inside {where} {bag}'),
+            ('--plots', bag / 'plots', f'--plots {bag}/plots is inside {where} {bag}')):
+        err = run_error(capsys, str(pred), str(gt), option, str(target), '--overwrite')
+        assert err == f'fhld eval: error: {says}: write it elsewhere', (option, target)
+        assert _tree(bag) == before and not (bag / 'plots').exists()
+    # an output that contains an input: tmp_path holds both bags
+    err = run_error(capsys, str(pred), str(gt), '--per-frame', str(tmp_path), '--overwrite')
+    assert err == f'fhld eval: error: --per-frame {tmp_path} contains PRED_BAG {pred}: write ' \
+                  'it elsewhere'

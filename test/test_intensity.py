@@ -112,7 +112,8 @@ def test_sensor_variation_draws_for_training_seeds_only():
     scenarios = [scenario_for_seed(seed, varied) for seed in range(200)]
     assert scenarios == [scenario_for_seed(seed, varied) for seed in range(200)]  # seeded
     worn = [s['paint_contrast'] for s in scenarios if s['paint_contrast'] is not None]
-    assert 0.45 < len(worn) / 200 < 0.75 and 1.3 <= min(worn) and max(worn) <= 8.0
+    assert 0.45 < len(worn) / 200 < 0.75 and 1.6 <= min(worn) and max(worn) <= 8.0
+    assert 0.1 < sum(s["single_sweep"] for s in scenarios) / 200 < 0.3
     assert {s['intensity'] for s in scenarios} == {None, 'reflectivity', 'float', 'u8'}
     assert any(not s['markings'] for s in scenarios)
     gains = [s['intensity_gain'] for s in scenarios]

@@ -13,7 +13,7 @@ import json
 import os
 import platform
 
-from fhld_ros.errors import CliError
+from fhld_ros.errors import ConfigError
 
 STAGES = 'fhld_ros.commands.bench_stages'
 SECTIONS: dict[str, str] = {
@@ -37,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
     unknown = [name for name in args.sections if name not in SECTIONS]
     if unknown:
         choices = ', '.join(SECTIONS)
-        raise CliError(f'unknown section {", ".join(unknown)} (choose from {choices})')
+        raise ConfigError(f'unknown section {", ".join(unknown)} (choose from {choices})')
     machine = f'{platform.machine()} {platform.processor()}'.strip()
     results: dict[str, object] = {'machine': machine, 'cpu_threads': os.cpu_count()}
     for name in args.sections or list(SECTIONS):

@@ -20,7 +20,7 @@ import numpy as np
 from fhld_ros.bagio import check_file_output, check_output, read_messages, write_file_atomically
 from fhld_ros.cli import main as fhld
 from fhld_ros.commands.replay import replay
-from fhld_ros.errors import CliError
+from fhld_ros.errors import ConfigError
 from fhld_ros.evaluation.evaluate import Frame, draw_top_view, evaluate_bags, summary
 from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT
 from fhld_ros.pipeline import LanePipeline
@@ -40,11 +40,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def check_out_dir(out: Path, overwrite: bool) -> None:
-    """CliError unless the demo may write its four outputs into out (see the module doc)."""
+    """ConfigError unless the demo may write its four outputs into out (see the module doc)."""
     if not (out.exists() or out.is_symlink()):
         return  # created with its parents; nothing in it to replace
     if not out.is_dir():
-        raise CliError(f'--out {out} exists and is not a folder')
+        raise ConfigError(f'--out {out} exists and is not a folder')
     for name in ('sim', 'lanes'):
         check_output(out / name, overwrite, label='demo output')
     for name in ('metrics.json', 'demo.png'):
@@ -72,7 +72,7 @@ def draw(frame: Frame, window: BevWindow, path: Path, title: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if not 1 <= args.sweeps <= 1000:
-        raise CliError(f'--sweeps must be in 1..1000, got {args.sweeps}')
+        raise ConfigError(f'--sweeps must be in 1..1000, got {args.sweeps}')
     out = args.out
     check_out_dir(out, args.overwrite)
     out.mkdir(parents=True, exist_ok=True)

@@ -20,7 +20,7 @@ import numpy as np
 from tqdm import tqdm
 
 from fhld_ros.bagio import BagWriter, check_output
-from fhld_ros.errors import CliError
+from fhld_ros.errors import ConfigError
 from fhld_ros.importing import kitti
 from fhld_ros.importing.pcd import IDENTITY_VIEWPOINT, read_pcd, to_xyzi
 from msg_adapters.odometry import make_odometry
@@ -64,18 +64,18 @@ def collect_sources(src: Path) -> tuple[list[Path], str]:
     if src.is_file():
         suffix = src.suffix.lower()
         if suffix not in KINDS:
-            raise CliError(f'{src} is neither a .pcd nor a KITTI .bin file')
+            raise ConfigError(f'{src} is neither a .pcd nor a KITTI .bin file')
         return [src], suffix
     if not src.is_dir():
-        raise CliError(f'{src} does not exist')
+        raise ConfigError(f'{src} does not exist')
     found = {s: sorted((p for p in src.iterdir() if p.is_file() and p.suffix.lower() == s),
                        key=_natural_key) for s in KINDS}
     if found['.pcd'] and found['.bin']:
-        raise CliError(f'{src} mixes {len(found[".pcd"])} .pcd and {len(found[".bin"])} .bin '
-                       'files: import each kind into its own bag')
+        raise ConfigError(f'{src} mixes {len(found[".pcd"])} .pcd and {len(found[".bin"])} .bin '
+                          'files: import each kind into its own bag')
     suffix = '.pcd' if found['.pcd'] else '.bin'
     if not found[suffix]:
-        raise CliError(f'{src} has no .pcd or .bin files')
+        raise ConfigError(f'{src} has no .pcd or .bin files')
     return found[suffix], suffix
 
 
@@ -84,18 +84,18 @@ def sweep_stamps(count: int, args: argparse.Namespace) -> np.ndarray:
     try:
         start_ns = int(Decimal(args.start) * 1_000_000_000)
     except (ArithmeticError, ValueError):
-        raise CliError(f'--start must be a number of seconds, got {args.start!r}') from None
+        raise ConfigError(f'--start must be a number of seconds, got {args.start!r}') from None
     if start_ns <= 0:
-        raise CliError(f'--start must be > 0 (ROS time 0 means "unset"), got {args.start}')
+        raise ConfigError(f'--start must be > 0 (ROS time 0 means "unset"), got {args.start}')
     if args.times is not None:
         offsets = kitti.read_times(args.times)
         if len(offsets) != count:
-            raise CliError(f'{args.times} has {len(offsets)} times for {count} sweeps')
+            raise ConfigError(f'{args.times} has {len(offsets)} times for {count} sweeps')
         if offsets[0] < 0:
-            raise CliError(f'{args.times}: times must be >= 0, the first is {offsets[0]:g}')
+            raise ConfigError(f'{args.times}: times must be >= 0, the first is {offsets[0]:g}')
         return start_ns + np.round(offsets * 1e9).astype(np.int64)
     if not 0.0 < args.rate <= 1000.0:
-        raise CliError(f'--rate must be within (0, 1000] Hz, got {args.rate:g}')
+        raise ConfigError(f'--rate must be within (0, 1000] Hz, got {args.rate:g}')
     return start_ns + np.round(np.arange(count) * (1e9 / args.rate)).astype(np.int64)
 
 
@@ -103,11 +103,11 @@ def sensor_poses(count: int, args: argparse.Namespace) -> np.ndarray | None:
     """(count, 4, 4) sensor -> odom transforms from --poses (None without)."""
     if args.poses is None:
         if args.kitti_calib is not None:
-            raise CliError('--kitti-calib converts --poses: give --poses too')
+            raise ConfigError('--kitti-calib converts --poses: give --poses too')
         return None
     poses = kitti.read_poses(args.poses)
     if len(poses) != count:
-        raise CliError(f'{args.poses} has {len(poses)} poses for {count} sweeps')
+        raise ConfigError(f'{args.poses} has {len(poses)} poses for {count} sweeps')
     if args.kitti_calib is not None:
         poses = kitti.camera_poses_to_lidar(poses, kitti.read_velo_to_cam(args.kitti_calib))
     return poses
@@ -116,9 +116,9 @@ def sensor_poses(count: int, args: argparse.Namespace) -> np.ndarray | None:
 def _check_frames(args: argparse.Namespace) -> None:
     for option, name in (('--frame-id', args.frame_id), ('--odom-frame', args.odom_frame)):
         if not name or any(c.isspace() for c in name):
-            raise CliError(f'{option} must be a non-empty name without spaces, got {name!r}')
+            raise ConfigError(f'{option} must be a non-empty name without spaces, got {name!r}')
     if args.frame_id == args.odom_frame:
-        raise CliError(f'--frame-id and --odom-frame must differ, both are {args.frame_id!r}')
+        raise ConfigError(f'--frame-id and --odom-frame must differ, both are {args.frame_id!r}')
 
 
 def read_sweep(path: Path, suffix: str) -> tuple[np.ndarray, int, bool]:

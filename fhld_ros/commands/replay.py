@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 from fhld_ros.bagio import BagWriter, check_output, read_messages, topic_counts
 from fhld_ros.detectors import make_detector
-from fhld_ros.errors import CliError
+from fhld_ros.errors import ConfigError
 from fhld_ros.pipeline import LanePipeline
 from fhld_ros.ros.parameters import DetectorParams, load_params_yaml
 from msg_adapters.family import stamp_to_ns
@@ -46,10 +46,10 @@ def replay(in_bag: Path, out_bag: Path, params: DetectorParams, points_topic: st
     check_output(out_bag, overwrite, inputs)  # before the model loads: fail fast
     counts = topic_counts(in_bag)
     if points_topic not in counts:
-        raise CliError(f'bag {in_bag} has no topic {points_topic} (it has: '
-                       f'{", ".join(sorted(counts)) or "nothing"})')
+        raise ConfigError(f'bag {in_bag} has no topic {points_topic} (it has: '
+                          f'{", ".join(sorted(counts)) or "nothing"})')
     if counts[points_topic] == 0:
-        raise CliError(f'bag {in_bag} has no messages on {points_topic}')
+        raise ConfigError(f'bag {in_bag} has no messages on {points_topic}')
     topics = [points_topic] + ([odom_topic] if odom_topic in counts else [])
     has_odometry = counts.get(odom_topic, 0) > 0
     pipeline = LanePipeline(params, make_detector(params), expect_odometry=has_odometry)

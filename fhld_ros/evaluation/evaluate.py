@@ -6,6 +6,10 @@ frame's window frame, derived from the bev_window outline (bev.py corner order: 
 front-right, front-left, rear-left, back to the first; so corner 0 -> 1 is forward, 0 -> 3 is
 left), clipped to the window square and scored with fhld_ros.evaluation.metrics. Counts are
 summed over frames; percentages come last.
+
+--per-frame and --plots follow bagio's output rule: an existing file is refused unless
+--overwrite (which replaces only a regular file), and no output may be, contain or lie inside
+PRED_BAG or GT_BAG. --plots DIR may exist: the rule applies to each PNG written into it.
 """
 from __future__ import annotations
 
@@ -20,8 +24,14 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
-from fhld_ros.bagio import BagError, bag_topics, read_messages
-from fhld_ros.errors import CliError
+from fhld_ros.bagio import (
+    BagError,
+    bag_topics,
+    check_file_output,
+    read_messages,
+    write_file_atomically,
+)
+from fhld_ros.errors import ConfigError
 from fhld_ros.evaluation import metrics
 from msg_adapters.lanes import marker_array_to_lanes
 
@@ -43,6 +53,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='--once-official keeps predictions with score > T (default 0.1)')
     parser.add_argument('--pred-topic', default='/lanes', help='default /lanes')
     parser.add_argument('--gt-topic', default='/lanes_gt', help='default /lanes_gt')
+    parser.add_argument('--overwrite', action='store_true',
+                        help='replace existing --per-frame / --plots files (regular files only)')
 
 
 @dataclass
@@ -83,14 +95,14 @@ def window_frame(outline: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
 
 
 def _read_lanesets(path: str, topic: str, role: str) -> list[Any]:
-    """LaneSets of every message on `topic`; CliError for unreadable bags or missing topics."""
+    """LaneSets of every message on `topic`; ConfigError for unreadable bags or missing topics."""
     try:
         topics = bag_topics(path)
         if topic not in topics:
             have = ', '.join(sorted(topics)) or 'nothing'
-            raise CliError(f'{role} bag {path} has no topic {topic} (it has: {have})')
+            raise ConfigError(f'{role} bag {path} has no topic {topic} (it has: {have})')
         if topics[topic] != MARKER_ARRAY:
-            raise CliError(f'{role} bag {path}: {topic} is {topics[topic]}, not {MARKER_ARRAY}')
+            raise ConfigError(f'{role} bag {path}: {topic} is {topics[topic]}, not {MARKER_ARRAY}')
         sets = []
         for _, log_ns, msg in read_messages(path, [topic]):
             lane_set = marker_array_to_lanes(msg)
@@ -98,9 +110,9 @@ def _read_lanesets(path: str, topic: str, role: str) -> list[Any]:
                 lane_set.stamp_ns = log_ns
             sets.append(lane_set)
     except BagError as exc:
-        raise CliError(str(exc)) from exc
+        raise ConfigError(str(exc)) from exc
     if not sets:
-        raise CliError(f'{role} bag {path} has no messages on {topic}')
+        raise ConfigError(f'{role} bag {path} has no messages on {topic}')
     return sets
 
 
@@ -114,7 +126,7 @@ def _pair_gt(preds: list[Any], gts: list[Any], args: argparse.Namespace) -> list
     early = idx < 0
     too_early = early & (gt_stamps[0] - pred_stamps > GT_LEAD_NS)
     if too_early.any():
-        raise CliError(
+        raise ConfigError(
             f'{int(too_early.sum())} of {len(preds)} {args.pred_topic} messages come more than '
             f'{GT_LEAD_NS / 1e9:g} s before the first {args.gt_topic} message '
             f'({pred_stamps.min() / 1e9:.3f} s vs {gt_stamps[0] / 1e9:.3f} s): '
@@ -122,8 +134,8 @@ def _pair_gt(preds: list[Any], gts: list[Any], args: argparse.Namespace) -> list
     paired = [gts[order[max(i, 0)]] for i in idx]
     for k, (pred, gt) in enumerate(zip(preds, paired)):
         if gt.lanes and pred.frame_id != gt.frame_id:
-            raise CliError(f'frame mismatch: {args.pred_topic} message {k} is in '
-                           f'"{pred.frame_id}" but its {args.gt_topic} is in "{gt.frame_id}"')
+            raise ConfigError(f'frame mismatch: {args.pred_topic} message {k} is in '
+                              f'"{pred.frame_id}" but its {args.gt_topic} is in "{gt.frame_id}"')
     return paired
 
 
@@ -148,20 +160,21 @@ def _score_frame(k: int, pred: Any, gt: Any, args: argparse.Namespace) -> Frame:
 
 
 def evaluate_bags(args: argparse.Namespace) -> list[Frame]:
-    """Per-frame scores of PRED_BAG against GT_BAG; CliError on bad input."""
+    """Per-frame scores of PRED_BAG against GT_BAG; ConfigError on bad input."""
     preds = _read_lanesets(args.pred_bag, args.pred_topic, 'prediction')
     gts = _read_lanesets(args.gt_bag, args.gt_topic, 'ground-truth')
     missing = [k for k, p in enumerate(preds) if p.window_outline is None]
     if missing:
-        raise CliError(f'{len(missing)} of {len(preds)} {args.pred_topic} messages have no '
-                       f'bev_window marker (first: message {missing[0]}, stamp '
-                       f'{preds[missing[0]].stamp_ns} ns); cannot tell which region was searched')
+        raise ConfigError(f'{len(missing)} of {len(preds)} {args.pred_topic} messages have no '
+                          f'bev_window marker (first: message {missing[0]}, stamp '
+                          f'{preds[missing[0]].stamp_ns} ns); cannot tell which region was '
+                          'searched')
     frames = []
     for k, (pred, gt) in enumerate(zip(preds, _pair_gt(preds, gts, args))):
         try:
             frames.append(_score_frame(k, pred, gt, args))
         except ValueError as exc:
-            raise CliError(f'{args.pred_topic} message {k}: bev_window {exc}') from exc
+            raise ConfigError(f'{args.pred_topic} message {k}: bev_window {exc}') from exc
     return frames
 
 
@@ -203,10 +216,31 @@ def _frame_row(f: Frame) -> dict[str, Any]:
 
 def write_per_frame(frames: list[Frame], path: str) -> None:
     rows = [_frame_row(f) for f in frames]
-    with open(path, 'w', newline='') as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+
+    def write(tmp: Path) -> None:
+        with open(tmp, 'w', newline='') as fh:
+            writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+    write_file_atomically(path, write)
+
+
+def _inputs(args: argparse.Namespace) -> dict[str, str]:
+    return {'PRED_BAG': args.pred_bag, 'GT_BAG': args.gt_bag}
+
+
+def check_outputs(args: argparse.Namespace) -> None:
+    """ConfigError unless --per-frame and --plots may be written (bagio's rule); before the
+    bags are read, so a refused output costs no scoring."""
+    if args.per_frame:
+        check_file_output(args.per_frame, args.overwrite, _inputs(args), '--per-frame')
+    if args.plots:
+        plots = Path(args.plots)
+        if plots.is_dir():  # its PNGs are checked when plot_worst knows their names
+            return
+        if plots.exists() or plots.is_symlink():
+            raise ConfigError(f'--plots {plots} exists and is not a directory')
+        check_file_output(plots, False, _inputs(args), '--plots')
 
 
 def draw_top_view(path: Path, gt: Sequence[np.ndarray], pred: Sequence[np.ndarray],
@@ -238,31 +272,36 @@ def draw_top_view(path: Path, gt: Sequence[np.ndarray], pred: Sequence[np.ndarra
     fig.savefig(path, dpi=110, bbox_inches='tight')
 
 
-def plot_worst(frames: list[Frame], out_dir: str, n: int) -> list[Path]:
-    """Top-view PNGs of the n frames with the lowest F1@10 (frames with lanes only)."""
+def plot_worst(frames: list[Frame], out_dir: str, n: int, overwrite: bool = False,
+               inputs: dict[str, str] | None = None) -> list[Path]:
+    """Top-view PNGs of the n frames with the lowest F1@10 (frames with lanes only). Every
+    PNG is checked (bagio.check_file_output: overwrite, inputs) before the first is written."""
     scored = [f for f in frames if f.point.n_gt or f.point.n_pred]
     scored.sort(key=lambda f: (f.point.scores()['F1@10'], f.index))
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    written = []
-    for f in scored[:max(n, 0)]:
+    out.mkdir(exist_ok=True)
+    worst = [(f, out / f'frame_{f.index:05d}.png') for f in scored[:max(n, 0)]]
+    for _, path in worst:
+        check_file_output(path, overwrite, inputs, '--plots')
+    for f, path in worst:
         s = f.point.scores()
-        path = out / f'frame_{f.index:05d}.png'
-        draw_top_view(path, f.gt, f.pred, f.half_size,
-                      f'frame {f.index}  t={f.stamp_ns / 1e9:.3f} s\n'
-                      f'@10 cm P {s["P@10"]:.1f} R {s["R@10"]:.1f} F1 {s["F1@10"]:.1f}   '
-                      f'@30 cm F1 {s["F1@30"]:.1f}')
-        written.append(path)
-    return written
+        title = (f'frame {f.index}  t={f.stamp_ns / 1e9:.3f} s\n'
+                 f'@10 cm P {s["P@10"]:.1f} R {s["R@10"]:.1f} F1 {s["F1@10"]:.1f}   '
+                 f'@30 cm F1 {s["F1@30"]:.1f}')
+        write_file_atomically(path, lambda tmp, f=f, title=title: draw_top_view(
+            tmp, f.gt, f.pred, f.half_size, title))
+    return [path for _, path in worst]
 
 
 def run(args: argparse.Namespace) -> int:
+    check_outputs(args)
     frames = evaluate_bags(args)
     result = summary(frames, official=args.once_official)
     if args.per_frame:
+        check_file_output(args.per_frame, args.overwrite, _inputs(args), '--per-frame')  # again
         write_per_frame(frames, args.per_frame)
     if args.plots:
-        written = plot_worst(frames, args.plots, args.worst)
+        written = plot_worst(frames, args.plots, args.worst, args.overwrite, _inputs(args))
         print(f'wrote {len(written)} plot(s) of the worst frames to {args.plots}')
     _print_table(result, args)
     if args.json:

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from fhld_ros.detectors import make_detector
-from fhld_ros.errors import CliError
+from fhld_ros.errors import ConfigError
 from fhld_ros.importing.kitti import read_bin
 from fhld_ros.pipeline import LaneDetector, LanePipeline
 from fhld_ros.ros.parameters import DetectorParams
@@ -191,12 +191,12 @@ def evaluate(directory: Path, params: DetectorParams, gains: tuple[float, ...] =
     try:
         all_labels = load_labels(labels_path)
     except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise CliError(f'cannot read labels {labels_path}: {exc}') from exc
+        raise ConfigError(f'cannot read labels {labels_path}: {exc}') from exc
     present = [scan for scan in all_labels if (directory / scan.file).is_file()]
     if not present:
-        raise CliError(f'{directory} holds none of the labelled scans '
-                       f'({", ".join(scan.file for scan in all_labels)})')
-    sweeps = {scan.file: read_bin(directory / scan.file) for scan in present}  # CliError if bad
+        raise ConfigError(f'{directory} holds none of the labelled scans '
+                          f'({", ".join(scan.file for scan in all_labels)})')
+    sweeps = {scan.file: read_bin(directory / scan.file) for scan in present}  # ConfigError if bad
     detector = make_detector(params)
     half = params.size_px * params.resolution_m / 2
     scores = []
@@ -257,9 +257,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if not args.directory.is_dir():
-        raise CliError(f'{args.directory} is not a directory')
+        raise ConfigError(f'{args.directory} is not a directory')
     if any(not gain > 0 for gain in args.gains):
-        raise CliError('gains must be > 0')
+        raise ConfigError('gains must be > 0')
     params = dataclasses.replace(DetectorParams(), detector=args.detector,
                                  checkpoint=args.checkpoint or '')
     scores = evaluate(args.directory, params, tuple(args.gains), args.labels)

@@ -44,7 +44,7 @@ from fhld_ros.detectors import (
     fhld_variants,
     load_fhld_model,
 )
-from fhld_ros.errors import CliError
+from fhld_ros.errors import ConfigError
 from fhld_ros.evaluation import metrics
 from fhld_ros.intensity import ABSOLUTE
 from fhld_ros.rolling_grid import BevWindow
@@ -153,7 +153,7 @@ def evaluate_seed(seed: int, windows: int, sensor: str | None = None,
 
 def run(args: argparse.Namespace) -> int:
     if args.seeds < 1 or args.windows_per_seed < 1 or args.workers < 1:
-        raise CliError('--seeds, --windows-per-seed and --workers must be >= 1')
+        raise ConfigError('--seeds, --windows-per-seed and --workers must be >= 1')
     params = DetectorParams(checkpoint=str(args.checkpoint or ''), model_threads=1,
                             score_threshold=args.score_threshold)
     if set(FHLD_VARIANTS) & set(args.detectors):

@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numpy as np
 
-from fhld_ros.errors import CliError
+from fhld_ros.errors import ConfigError
 from fhld_ros.importing.pcd import XYZI_DTYPE
 
 
-class KittiError(CliError, ValueError):
+class KittiError(ConfigError, ValueError):
     """A KITTI file cannot be read; the message names the file and the problem."""
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fhld_ros.errors import CliError
+from fhld_ros.errors import ConfigError
 
 INTENSITY_NAMES = ('intensity', 'reflectivity', 'i', 'I')  # first present wins
 XYZI_DTYPE = np.dtype([('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('intensity', '<f4')])
@@ -29,7 +29,7 @@ _KEYS = ('VERSION', 'FIELDS', 'SIZE', 'TYPE', 'COUNT', 'WIDTH', 'HEIGHT', 'VIEWP
 _MAX_HEADER_BYTES = 1 << 16  # a PCD header is a dozen short lines
 
 
-class PcdError(CliError, ValueError):
+class PcdError(ConfigError, ValueError):
     """A PCD file cannot be read; the message names the file and the problem."""
 
 

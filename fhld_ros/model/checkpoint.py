@@ -18,6 +18,7 @@ from typing import Any
 import torch
 
 from fhld_ros import __version__
+from fhld_ros.errors import ConfigError
 from fhld_ros.model.config import FhldConfig
 from fhld_ros.model.detector import FhldDetector
 
@@ -32,7 +33,7 @@ _UNSAFE_GLOBAL = re.compile(r'unsupported global:?\s*(?:global\s+)?([\w.]+)', re
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent.parent / 'checkpoints' / 'fhld.pt'
 
 
-class CheckpointError(ValueError):
+class CheckpointError(ConfigError):
     """A checkpoint that cannot be used; the message names the file and the problem."""
 
 
@@ -81,8 +82,9 @@ def load_checkpoint(path: str | os.PathLike, expect: FhldConfig | None = None,
                     map_location: str | torch.device = 'cpu') -> LoadedCheckpoint:
     """Load a checkpoint; with ``expect``, its raster spec must equal the stored one."""
     path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f'checkpoint not found: {path}')
+    if not path.is_file():  # a directory or a device (/dev/zero) exists but is no checkpoint
+        raise CheckpointError(f'checkpoint {path} is not a regular file' if path.exists()
+                              else f'checkpoint not found: {path}')
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:  # zip, pickle and tensor errors all mean the same to the user

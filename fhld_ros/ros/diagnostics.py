@@ -1,15 +1,24 @@
-"""What lane_detector reports on /diagnostics: counters, rates, latency and stage medians.
+"""What lane_detector reports on /diagnostics: a level from the last few seconds, counters,
+rates, latency and stage medians.
+
+The level follows diagnostic_updater's convention: OK, WARN or ERROR, judged only on what
+happened in the last THRESHOLDS.window_sec seconds (never on lifetime counters, so one bad
+message does not leave the node in WARN forever), and the message names every threshold that
+tripped; 'running' when none did. Thresholds lists them all.
 
 Stage breakdown (medians, ms): ingest = cloud callback (decode + insert), wait = sweep arrival
 -> its detection starts, raster = window raster, detect = model and tracking, publish = /lanes
 + ego paths. latency_ms = sweep arrival -> its lanes published. Times are time.monotonic()
-seconds; the node records them, this module keeps the numbers out of the node.
+seconds; the node records them, this module keeps the numbers out of the node, and every
+method takes `now` so tests can replay a timeline without sleeping.
 """
 from __future__ import annotations
 
 import collections
+import math
 import time
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
@@ -17,24 +26,136 @@ from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 STAGES = ('ingest', 'wait', 'raster', 'detect', 'publish')
 HISTORY = 300  # recent sweeps / detections the medians and percentiles cover
 ARRIVALS_KEPT = 100  # arrival times of sweeps not detected yet (most are skipped at 10 Hz)
+EVENTS_KEPT = 10_000  # per kind in the window: a flood of bad clouds cannot grow memory
 STATUS_NAME = 'fhld_ros: lane_detector'
+OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+
+
+@dataclass(frozen=True)
+class Thresholds:
+    """When /diagnostics leaves OK; everything is measured over the last window_sec seconds.
+
+    - latency: 95th percentile of sweep arrival -> its lanes published. WARN above the README's
+      target (150 ms); ERROR a second behind, when the lanes describe where the car was.
+      Sweeps detected while odometry is stopped are left out: the first of them waited out
+      odom_wait_sec on purpose, and the odometry WARN says so.
+    - drop rate: dropped / received clouds, where dropped = bad clouds (malformed, too large,
+      no frame_id) + sweeps overtaken (due for a detection by rate_hz, but a newer sweep was
+      detected instead because the detector was busy). Any drop is a WARN; over half an ERROR.
+      Sweeps left out on purpose (a 20 Hz sensor at rate_hz 10) are not drops.
+    - stale input: no cloud at all for this long (a 10 Hz sensor misses 20 sweeps in 2 s);
+      before the first cloud the node WARNs that it waits for one.
+    A level trips when its value is above the threshold. Odometry that stopped (sweeps
+    detected alone in the cloud frame) is a WARN for as long as it stays stopped: the pipeline
+    knows when it comes back. Bad odometry in the window is a WARN; failed detections a WARN,
+    or an ERROR when none succeeded in the window.
+    """
+
+    window_sec: float = 5.0
+    latency_p95_warn_ms: float = 150.0
+    latency_p95_error_ms: float = 1000.0
+    drop_rate_warn: float = 0.0
+    drop_rate_error: float = 0.5
+    stale_warn_sec: float = 2.0
+    stale_error_sec: float = 10.0
+
+
+THRESHOLDS = Thresholds()
+
+
+@dataclass(frozen=True)
+class WindowSummary:
+    """What happened in the last window_sec seconds (`seconds`: less right after start-up)."""
+
+    seconds: float
+    clouds: int = 0  # received, good or bad
+    bad_clouds: int = 0
+    overtaken: int = 0
+    bad_odometry: int = 0
+    detections: int = 0
+    detection_errors: int = 0
+    latency_p95_ms: float | None = None
+    since_cloud: float | None = None  # seconds since the newest cloud; None before the first
+
+
+def _tripped(value: float, warn: float, error: float) -> tuple[bytes, float] | None:
+    """(ERROR, error) when value is above error, (WARN, warn) above warn, else None."""
+    if value > error:
+        return ERROR, error
+    return (WARN, warn) if value > warn else None
+
+
+def assess(window: WindowSummary, odometry_stopped: bool = False,
+           th: Thresholds = THRESHOLDS) -> tuple[bytes, str]:
+    """(level, message) of a window: the worst tripped threshold, and all of them named."""
+    found: list[tuple[bytes, str]] = []
+    if window.since_cloud is None:
+        found.append((WARN, 'no clouds received yet'))
+    elif tripped := _tripped(window.since_cloud, th.stale_warn_sec, th.stale_error_sec):
+        found.append((tripped[0], f'input stale: no clouds for {window.since_cloud:.1f} s '
+                                  f'(> {tripped[1]:g} s)'))
+    dropped = window.bad_clouds + window.overtaken
+    rate = dropped / max(window.clouds, dropped, 1)
+    if tripped := _tripped(rate, th.drop_rate_warn, th.drop_rate_error):
+        kinds = ', '.join(f'{n} {kind}' for n, kind in (
+            (window.bad_clouds, 'bad'), (window.overtaken, 'overtaken')) if n)
+        found.append((tripped[0], f'dropped {dropped} of {window.clouds} clouds in '
+                                  f'{window.seconds:.2g} s ({kinds}; {rate:.0%} > '
+                                  f'{tripped[1]:.0%})'))
+    p95 = window.latency_p95_ms
+    if p95 is not None and (tripped := _tripped(p95, th.latency_p95_warn_ms,
+                                                th.latency_p95_error_ms)):
+        found.append((tripped[0], f'latency p95 {p95:.0f} ms (> {tripped[1]:g} ms)'))
+    if odometry_stopped:
+        found.append((WARN, 'odometry stopped: detecting per sweep'))
+    if window.bad_odometry:
+        found.append((WARN, f'{window.bad_odometry} bad odometry messages dropped'))
+    if window.detection_errors:
+        found.append((WARN if window.detections else ERROR,
+                      f'{window.detection_errors} detections failed'))
+    level = max((level for level, _ in found), default=OK)
+    return level, '; '.join(message for _, message in found) or 'running'
 
 
 class NodeStats:
-    """Counts, errors and timings of the node, summed up as one DiagnosticStatus."""
+    """Counts, errors and timings of the node, summed up as one DiagnosticStatus.
 
-    def __init__(self) -> None:
-        self.started = time.monotonic()
+    min_interval_ns: the node's least stamp difference between detected sweeps (rate_hz); a
+    sweep at least that much newer than the last detected one was due, and is counted as
+    overtaken when a newer sweep is detected instead.
+    """
+
+    def __init__(self, min_interval_ns: int = 0, thresholds: Thresholds | None = None,
+                 now: float | None = None) -> None:
+        self.started = time.monotonic() if now is None else now
+        self.thresholds = thresholds or THRESHOLDS
+        self.min_interval_ns = min_interval_ns
         self.counts: collections.Counter[str] = collections.Counter()
         self.last_error = ''
         self.arrived_at: dict[int, float] = {}  # sweep stamp (ns) -> arrival
         self.latencies_ms: collections.deque[float] = collections.deque(maxlen=HISTORY)
         self.stages_ms = {name: collections.deque(maxlen=HISTORY) for name in STAGES}
+        self.last_detected_ns: int | None = None
+        self.last_cloud: float | None = None
+        # kind -> (time, amount or latency ms), pruned to the window when read
+        self.recent: dict[str, collections.deque[tuple[float, float]]] = \
+            collections.defaultdict(lambda: collections.deque(maxlen=EVENTS_KEPT))
 
-    def error(self, what: str, exc: Exception) -> None:
+    def _event(self, kind: str, now: float | None, value: float = 1.0) -> None:
+        self.recent[kind].append((time.monotonic() if now is None else now, value))
+
+    def cloud_received(self, now: float | None = None) -> None:
+        """Any cloud message, before it is decoded (a bad one too: the input is not stale)."""
+        now = time.monotonic() if now is None else now
+        self.counts['clouds_received'] += 1
+        self.last_cloud = now
+        self._event('clouds_received', now)
+
+    def error(self, what: str, exc: Exception, now: float | None = None) -> None:
         """Count a failure under `what` and keep its message for the next status."""
         self.counts[what] += 1
         self.last_error = f'{what}: {exc}'
+        self._event(what, now)
 
     def cloud_ingested(self, stamp_ns: int, arrived: float, done: float) -> None:
         self.stages_ms['ingest'].append((done - arrived) * 1e3)
@@ -43,21 +164,60 @@ class NodeStats:
             self.arrived_at.pop(next(iter(self.arrived_at)))
 
     def detection_done(self, stamp_ns: int, start: float, rastered: float, detected: float,
-                       done: float) -> None:
+                       done: float, odometry_timed_out: bool = False) -> None:
+        """odometry_timed_out: detected while odometry is stopped (the first such sweep waited
+        odom_wait_sec for it); its latency is left out of the window's (see Thresholds)."""
         arrived = self.arrived_at.get(stamp_ns)
+        latency = math.nan
         if arrived is not None:
-            self.latencies_ms.append((done - arrived) * 1e3)
+            latency = (done - arrived) * 1e3
+            self.latencies_ms.append(latency)
             self.stages_ms['wait'].append((start - arrived) * 1e3)
         for name, (a, b) in {'raster': (start, rastered), 'detect': (rastered, detected),
                              'publish': (detected, done)}.items():
             self.stages_ms[name].append((b - a) * 1e3)
+        self._event('detections', done, math.nan if odometry_timed_out else latency)
+        last, self.last_detected_ns = self.last_detected_ns, stamp_ns
+        if last is not None and stamp_ns > last:  # (a stamp going back is a new run)
+            due = last + self.min_interval_ns
+            overtaken = sum(1 for stamp in self.arrived_at if due <= stamp < stamp_ns)
+            if overtaken:
+                self.counts['sweeps_overtaken'] += overtaken
+                self._event('sweeps_overtaken', done, overtaken)
 
-    def values(self, counters: Mapping[str, int], input_reliability: str) -> dict[str, str]:
-        """Key -> value strings: `counters` (the pipeline's and the node's) and the timings."""
-        elapsed = max(time.monotonic() - self.started, 1e-9)
+    def _recent(self, kind: str, now: float) -> list[float]:
+        events = self.recent[kind]
+        while events and events[0][0] < now - self.thresholds.window_sec:
+            events.popleft()
+        return [value for _, value in events]
+
+    def window(self, now: float | None = None) -> WindowSummary:
+        now = time.monotonic() if now is None else now
+        latencies = [v for v in self._recent('detections', now) if not math.isnan(v)]
+        return WindowSummary(
+            seconds=max(min(self.thresholds.window_sec, now - self.started), 1e-9),
+            clouds=len(self._recent('clouds_received', now)),
+            bad_clouds=len(self._recent('bad_clouds', now)),
+            overtaken=int(sum(self._recent('sweeps_overtaken', now))),
+            bad_odometry=len(self._recent('bad_odometry', now)),
+            detections=len(self._recent('detections', now)),
+            detection_errors=len(self._recent('detection_errors', now)),
+            latency_p95_ms=float(np.percentile(latencies, 95)) if latencies else None,
+            since_cloud=None if self.last_cloud is None else now - self.last_cloud)
+
+    def values(self, counters: Mapping[str, int], input_reliability: str,
+               window: WindowSummary) -> dict[str, str]:
+        """Key -> value strings: `counters` (the pipeline's and the node's, since start), the
+        window's rates and drops, the timings."""
         values = {k: str(v) for k, v in sorted(counters.items())}
-        values['cloud_rate_hz'] = f'{counters.get("clouds", 0) / elapsed:.2f}'
-        values['detection_rate_hz'] = f'{counters.get("detections", 0) / elapsed:.2f}'
+        values['cloud_rate_hz'] = f'{window.clouds / window.seconds:.2f}'
+        values['detection_rate_hz'] = f'{window.detections / window.seconds:.2f}'
+        values['window_sec'] = f'{window.seconds:.1f}'
+        values['window_clouds_dropped'] = str(window.bad_clouds + window.overtaken)
+        if window.latency_p95_ms is not None:
+            values['window_latency_ms_p95'] = f'{window.latency_p95_ms:.1f}'
+        if window.since_cloud is not None:
+            values['seconds_since_cloud'] = f'{window.since_cloud:.1f}'
         if self.latencies_ms:
             p50, p95 = np.percentile(np.asarray(self.latencies_ms), [50, 95])
             values['latency_ms_p50'], values['latency_ms_p95'] = f'{p50:.1f}', f'{p95:.1f}'
@@ -69,18 +229,13 @@ class NodeStats:
         return values
 
     def status(self, pipeline_counters: Mapping[str, int], input_reliability: str,
-               hardware_id: str, odometry_stopped: bool = False) -> DiagnosticStatus:
-        """WARN once a bad message was dropped or anything failed, or while sweeps go in
-        without odometry (it stopped), else OK."""
-        counters = dict(pipeline_counters, **self.counts)
-        dropped = counters.get('bad_clouds', 0) + counters.get('bad_odometry', 0)
-        values = self.values(counters, input_reliability)
+               hardware_id: str, odometry_stopped: bool = False,
+               now: float | None = None) -> DiagnosticStatus:
+        """The level and message of the last window_sec seconds (assess), and the values."""
+        window = self.window(now)
+        level, message = assess(window, odometry_stopped, self.thresholds)
+        values = self.values(dict(pipeline_counters, **self.counts), input_reliability, window)
         values['odometry_stopped'] = str(odometry_stopped).lower()
-        messages = ([f'{dropped} bad messages dropped'] if dropped else []) + (
-            ['odometry stopped: detecting per sweep'] if odometry_stopped else [])
-        warn = dropped or self.last_error or odometry_stopped
-        return DiagnosticStatus(
-            level=DiagnosticStatus.WARN if warn else DiagnosticStatus.OK,
-            name=STATUS_NAME, hardware_id=hardware_id,
-            message='; '.join(messages) or 'running',
-            values=[KeyValue(key=k, value=v) for k, v in values.items()])
+        return DiagnosticStatus(level=level, name=STATUS_NAME, hardware_id=hardware_id,
+                                message=message,
+                                values=[KeyValue(key=k, value=v) for k, v in values.items()])

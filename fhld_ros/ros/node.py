@@ -13,6 +13,7 @@ and messages: docs/design.md §3.
 from __future__ import annotations
 
 import gc
+import re
 import sys
 import threading
 import time
@@ -33,11 +34,11 @@ from visualization_msgs.msg import MarkerArray
 
 from fhld_ros.dataclass_dict import field_docs, from_dict, to_plain
 from fhld_ros.detectors import make_detector
-from fhld_ros.errors import CliError
+from fhld_ros.errors import ConfigError
 from fhld_ros.pipeline import LanePipeline
 from fhld_ros.ros.diagnostics import NodeStats
 from fhld_ros.ros.executor import HandoffExecutor
-from fhld_ros.ros.parameters import DetectorParams
+from fhld_ros.ros.parameters import DetectorParams, type_problem
 from msg_adapters.family import rclpy_family, stamp_to_ns
 from msg_adapters.lanes import lane_to_path, lanes_to_marker_array
 
@@ -50,16 +51,43 @@ GIL_SWITCH_SEC = 0.0005  # see main()
 FAMILY = rclpy_family()
 
 
-def declare_detector_params(node: Node) -> DetectorParams:
-    """Declare every DetectorParams field, described by its doc; the values as DetectorParams.
+# rclpy's refusal of a value of the wrong type (InvalidParameterTypeException's wording)
+_WRONG_TYPE = re.compile(
+    r"parameter '(?P<name>[^']+)' to '(?P<value>.*)' of type '(?P<given>\w+)'")
+TOPIC_PARAMS = ('points_topic', 'odom_topic', 'lanes_topic')
 
-    Raises ValueError for values DetectorParams refuses, ParameterException for a wrong type.
+
+def rcl_reason(exc: Exception) -> str:
+    """rcl's error text in one line, without its C source location."""
+    first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return re.sub(r'(\. Error: error not set)?, at /\S+$', '', first)
+
+
+def declare_detector_params(node: Node) -> DetectorParams:
+    """Declare every DetectorParams field, read-only and described by its doc; the values as
+    DetectorParams. Read-only because the node reads them once: `ros2 param set` is refused
+    with a reason instead of succeeding and changing nothing.
+
+    Raises ConfigError naming the parameter for a wrong type, a refused value or a topic name
+    ROS cannot use.
     """
     docs = field_docs(DetectorParams)
-    declared = node.declare_parameters('', [
-        (name, default, ParameterDescriptor(description=docs[name]))
-        for name, default in to_plain(DetectorParams()).items()])
-    return from_dict(DetectorParams, {p.name: p.value for p in declared})
+    try:
+        declared = node.declare_parameters('', [
+            (name, default, ParameterDescriptor(description=docs[name], read_only=True))
+            for name, default in to_plain(DetectorParams()).items()])
+    except ParameterException as exc:
+        wrong = _WRONG_TYPE.search(str(exc))
+        raise ConfigError(type_problem(**wrong.groupdict()) if wrong else str(exc)) from None
+    params = from_dict(DetectorParams, {p.name: p.value for p in declared})
+    for name in TOPIC_PARAMS:
+        try:
+            node.resolve_topic_name(getattr(params, name))
+        except rclpy_implementation.RCLError as exc:
+            reason = rcl_reason(exc).removeprefix('failed to resolve name: ')
+            raise ConfigError(f'{name} {getattr(params, name)!r} is not a valid topic name: '
+                              f'{reason}') from None
+    return params
 
 
 class LaneDetectorNode(Node):
@@ -71,9 +99,9 @@ class LaneDetectorNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('lane_detector', **kwargs)
         self.params = declare_detector_params(self)
-        self.get_logger().info(f'parameters: {self.params}')
         self.pipeline = LanePipeline(self.params, make_detector(self.params))
-        self.stats = NodeStats()
+        # logged once they proved usable: a bad value gives one line on stderr, nothing else
+        self.get_logger().info(f'parameters: {self.params}')
         self.lock = threading.Lock()  # the pipeline: cloud / odometry callbacks vs detection
         self.detecting = threading.Lock()
         self.said_no_odometry = False
@@ -86,6 +114,7 @@ class LaneDetectorNode(Node):
         # limit on the clock phase-locked detections behind arrivals (measured: +40 ms of
         # waiting per sweep).
         self.min_interval_ns = int(0.9e9 / self.params.rate_hz)  # slack for stamp jitter
+        self.stats = NodeStats(self.min_interval_ns)
         self.last_detected_stamp_ns: int | None = None
         self._create_interfaces()
         self.get_logger().info(f'lane_detector ready: {self.params.detector} detector, clouds '
@@ -189,7 +218,7 @@ class LaneDetectorNode(Node):
     def on_cloud(self, msg: PointCloud2) -> None:
         arrived = time.monotonic()
         self.last_input = time.monotonic()
-        self.stats.counts['clouds_received'] += 1
+        self.stats.cloud_received(arrived)
         try:
             with self.lock:
                 self.pipeline.add_cloud(msg)
@@ -239,6 +268,7 @@ class LaneDetectorNode(Node):
                                       0 <= newest - last < self.min_interval_ns):
                     return False  # nothing new, or too soon after the last detected sweep
                 window = self.pipeline.take_window()
+                timed_out = self.pipeline.odometry_stopped  # (the first waited odom_wait_sec)
             if window is None:
                 return False
             self.last_detected_stamp_ns = window.stamp_ns
@@ -250,7 +280,8 @@ class LaneDetectorNode(Node):
                 FAMILY, header, out.lanes, out.confidences, out.ids, out.outline))
             self.left_pub.publish(lane_to_path(FAMILY, header, out.ego_left))
             self.right_pub.publish(lane_to_path(FAMILY, header, out.ego_right))
-            self.stats.detection_done(out.stamp_ns, start, rastered, detected, time.monotonic())
+            self.stats.detection_done(out.stamp_ns, start, rastered, detected, time.monotonic(),
+                                      odometry_timed_out=timed_out)
             return True
         except Exception as exc:
             self.stats.error('detection_errors', exc)
@@ -299,16 +330,21 @@ def main(args: list[str] | None = None) -> int:
     and whatever rclpy call comes next fails; that failure is the stop, not an error. (Before
     rclpy.init, fhld_ros/ros/lane_detector.py takes care of the signals.)
     """
-    rclpy.init(args=args)
+    try:
+        rclpy.init(args=args)
+    except rclpy_implementation.RCLError as exc:  # arguments rcl cannot parse ('-p name:=')
+        reason = rcl_reason(exc).removeprefix('failed to initialize rcl: ')
+        print(f'lane_detector: error: bad ROS arguments: {reason}', file=sys.stderr)
+        return 2
     try:
         node = LaneDetectorNode()
     except (KeyboardInterrupt, ExternalShutdownException):
         rclpy.try_shutdown()
         return 0
-    except (ValueError, CliError, ParameterException) as exc:
+    except ConfigError as exc:
         if not rclpy.ok():
             return 0  # stopped by a signal while the node was being built
-        # bad parameters or checkpoint: one clear line, no traceback
+        # bad parameters or checkpoint: one line naming the problem, no traceback
         print(f'lane_detector: error: {exc}', file=sys.stderr)
         rclpy.try_shutdown()
         return 2

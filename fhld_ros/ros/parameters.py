@@ -6,6 +6,7 @@ This module needs no rclpy: the pipeline and `fhld replay` use it too.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -13,8 +14,46 @@ from typing import Any
 import yaml
 
 from fhld_ros.dataclass_dict import documented, from_dict
-from fhld_ros.errors import CliError
+from fhld_ros.errors import ConfigError
 from fhld_ros.model.config import FhldConfig
+
+# The values a string parameter takes, and every number's range, checked in one place:
+# (integer, low, low itself allowed, high). Upper bounds keep memory and time finite
+# (size_px = 100000 asked numpy for 75 GiB); they sit far above any useful setting.
+_CHOICES: dict[str, tuple[str, ...]] = {
+    'detector': ('fhld', 'classical'), 'device': ('cpu', 'cuda'),
+    'model_runtime': ('auto', 'onnxruntime', 'torchscript'),
+    'input_reliability': ('auto', 'reliable', 'best_effort'),
+}
+_RANGES: dict[str, tuple[bool, float, bool, float]] = {
+    'model_threads': (True, 0, True, 1024),
+    'score_threshold': (False, 0, True, 1),
+    'local_refine_steps': (True, 0, True, 64),
+    'evidence_reach_m': (False, 0, True, 100),
+    'size_px': (True, 32, True, 4096),  # FhldConfig's bound
+    'resolution_m': (False, 0, False, 10),
+    'accumulate_sec': (False, 0, True, 60),
+    'max_sweeps': (True, 1, True, 1000),
+    'rate_hz': (False, 0, False, 1000),
+    'max_points': (True, 0, False, 1 << 28),
+    'odom_wait_sec': (False, 0, True, 10),
+    'intensity_scale': (False, 0, True, 1e9),
+}
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _range_problem(name: str, value: Any) -> str | None:
+    """Why value is not in name's _RANGES range (None when it is)."""
+    integer, low, low_allowed, high = _RANGES[name]
+    if _is_number(value) and (isinstance(value, int) or not integer) and math.isfinite(value) \
+            and (low <= value if low_allowed else low < value) and value <= high:
+        return None
+    kind = 'an integer' if integer else 'a number'
+    return (f'{name} must be {kind} {">=" if low_allowed else ">"} {low:g} and <= {high:.10g}, '
+            f'not {value!r}')
 
 
 @dataclass(frozen=True)
@@ -63,7 +102,8 @@ class DetectorParams:
         'this much later arrives (live: or this long passes without any message); then it is '
         'detected alone in the cloud frame, as are the next sweeps until odometry resumes')
     intensity_scale: float = documented(
-        0.0, 'full scale of the intensity field; 0 = infer per sweep (1, 255, 65535)')
+        0.0, 'checkpoints with absolute intensity only: full scale of the intensity field; '
+        '0 = infer per sweep (1, 255, 65535). Contrast-encoded weights need none')
     input_reliability: str = documented(
         'auto', "points subscription reliability: 'auto' (reliable, switching to best effort "
         "while a best-effort publisher exists), 'reliable' or 'best_effort'")
@@ -72,37 +112,28 @@ class DetectorParams:
         '[x, y, z, roll, pitch, yaw], used when the cloud frame differs from child_frame_id')
 
     def __post_init__(self) -> None:
+        """ConfigError naming every value out of its range (all of them, in one line)."""
         problems = []
-        if self.detector not in ('fhld', 'classical'):
-            problems.append(f"detector must be 'fhld' or 'classical', not {self.detector!r}")
-        if self.device not in ('cpu', 'cuda'):
-            problems.append(f"device must be 'cpu' or 'cuda', not {self.device!r}")
-        if self.model_runtime not in ('auto', 'onnxruntime', 'torchscript'):
-            problems.append("model_runtime must be 'auto', 'onnxruntime' or 'torchscript'")
+        for name, allowed in _CHOICES.items():
+            if getattr(self, name) not in allowed:
+                choices = ', '.join(repr(c) for c in allowed[:-1]) + f' or {allowed[-1]!r}'
+                problems.append(f'{name} must be {choices}, not {getattr(self, name)!r}')
         if self.model_runtime == 'onnxruntime' and self.device != 'cpu':
             problems.append("model_runtime 'onnxruntime' needs device 'cpu'")
-        if self.input_reliability not in ('auto', 'reliable', 'best_effort'):
-            problems.append("input_reliability must be 'auto', 'reliable' or 'best_effort'")
         if not isinstance(self.refine_heights, bool):
             problems.append('refine_heights must be true or false')
-        steps = self.local_refine_steps
-        if isinstance(steps, bool) or not (isinstance(steps, int) and steps >= 0):
-            problems.append('local_refine_steps must be an integer >= 0')
-        if len(self.lidar_to_base) != 6:
-            problems.append('lidar_to_base must be [x, y, z, roll, pitch, yaw]')
-        points = self.max_points
-        if isinstance(points, bool) or not (isinstance(points, int) and points > 0):
-            problems.append('max_points must be an integer > 0')
-        if not 0 <= self.odom_wait_sec <= 10:
-            problems.append('odom_wait_sec must be within 0..10')
-        if not self.evidence_reach_m >= 0:
-            problems.append('evidence_reach_m must be >= 0')
-        if not (self.rate_hz > 0 and self.accumulate_sec >= 0 and self.max_sweeps >= 1
-                and self.size_px >= 32 and self.resolution_m > 0):
-            problems.append('rate_hz, resolution_m > 0, accumulate_sec >= 0, max_sweeps >= 1 '
-                            'and size_px >= 32 are required')
+        for name in ('points_topic', 'odom_topic', 'lanes_topic'):
+            if not (isinstance(getattr(self, name), str) and getattr(self, name)):
+                problems.append(f'{name} must be a topic name, not {getattr(self, name)!r}')
+        if not isinstance(self.checkpoint, str):
+            problems.append(f'checkpoint must be a path, not {self.checkpoint!r}')
+        problems += [p for name in _RANGES if (p := _range_problem(name, getattr(self, name)))]
+        if not (isinstance(self.lidar_to_base, tuple) and len(self.lidar_to_base) == 6 and all(
+                _is_number(v) and math.isfinite(v) for v in self.lidar_to_base)):
+            problems.append('lidar_to_base must be 6 finite numbers [x, y, z, roll, pitch, yaw], '
+                            f'not {self.lidar_to_base!r}')
         if problems:
-            raise ValueError('; '.join(problems))
+            raise ConfigError('; '.join(problems))
 
 
 def load_params_yaml(path: str | Path, node_name: str = 'lane_detector') -> DetectorParams:
@@ -115,12 +146,23 @@ def load_params_yaml(path: str | Path, node_name: str = 'lane_detector') -> Dete
     try:
         document = yaml.safe_load(path.read_text())
     except (OSError, yaml.YAMLError) as exc:
-        raise CliError(f'cannot read parameter file {path}: {exc}') from exc
+        raise ConfigError(f'cannot read parameter file {path}: {exc}') from exc
     section: Any = (document.get(node_name, document.get('/**'))
                     if isinstance(document, dict) else None)
     if not isinstance(section, dict) or 'ros__parameters' not in section:
-        raise CliError(f'parameter file {path} has no {node_name}: ros__parameters section')
+        raise ConfigError(f'parameter file {path} has no {node_name}: ros__parameters section')
     try:
         return from_dict(DetectorParams, section['ros__parameters'], ignore=('use_sim_time',))
     except (TypeError, ValueError) as exc:  # TypeError: a value of the wrong kind
-        raise CliError(f'parameter file {path}: {exc}') from exc
+        raise ConfigError(f'parameter file {path}: {exc}') from exc
+
+
+def type_problem(name: str, value: str, given: str) -> str:
+    """One line for a parameter given a value of the wrong type (`given`: ROS's type name,
+    e.g. INTEGER for `rate_hz:=10`, which ROS does not turn into the double it declares)."""
+    wanted = {bool: 'true or false', int: 'an integer', str: 'a string',
+              float: 'a number with a decimal point (e.g. 10.0)',
+              tuple: 'a list of numbers with decimal points (e.g. [0.0, 1.5])'}
+    default = getattr(DetectorParams(), name, None)
+    return (f'{name} must be {wanted.get(type(default), "of its declared type")}, not '
+            f'{given.lower().replace("_", " ")} {value}')

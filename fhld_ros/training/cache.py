@@ -47,9 +47,15 @@ from fhld_ros.sim.simulator import Simulator
 from fhld_ros.training.samples import training_samples
 
 SHARD_FORMAT = 1
+SAMPLE_OPTIONS = ('intensity_gain', 'single_sweep')  # scenario keys that are not Simulator's
 TEST_SEED_BASE = 1_000_000
 ALL_SENSORS: tuple[str, ...] = SPINNING
 ALL_TOPOLOGIES: tuple[str | None, ...] = (None, *TOPOLOGIES)  # None: the layout's own events
+# sensor_variation: below ~1.6x, worn simulated paint is lost in the asphalt's own patches
+# (+-25 %), and lanes taught there were drawn on unmarked roads too (docs/training.md)
+WORN_PAINT_RANGE = (1.6, 8.0)
+NO_MARKINGS_SHARE = 0.2
+SINGLE_SWEEP_SHARE = 0.2
 INDEX_NAME = 'cache.json'
 
 
@@ -96,7 +102,7 @@ def scenario_for_seed(seed: int, settings: CacheSettings = CacheSettings()) -> d
     sensors, 7 topologies by default) #sensors * #topologies consecutive seeds cover every pair.
     Odometry drift and motion distortion are drawn from the seed; with
     settings.sensor_variation, and below TEST_SEED_BASE only (the test set stays what it is),
-    also what real sensors and roads vary (sensor_variation). 'intensity_gain' is for
+    also what real sensors and roads vary (sensor_variation). SAMPLE_OPTIONS are for
     training_samples, every other key a Simulator option."""
     ns, nt = len(settings.sensors), len(settings.topologies)
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x5CE7A]))
@@ -113,22 +119,27 @@ def scenario_for_seed(seed: int, settings: CacheSettings = CacheSettings()) -> d
 def sensor_variation(seed: int) -> dict:
     """What real sensors and roads vary, drawn per training seed:
 
-    * paint: 60 % worn, beads gone, reflectance 1.3-8x the asphalt's (log-uniform); else the
-      fresh retro-reflective paint (~15-20x); 5 % of roads carry no markings at all
+    * paint: 60 % worn, beads gone, reflectance WORN_PAINT_RANGE x the asphalt's
+      (log-uniform); else the fresh retro-reflective paint (~15-20x); NO_MARKINGS_SHARE of the
+      roads carry no markings at all
     * units: 1/4 each the preset's own, uint16 reflectivity, 0-1 float, 0-255 counts
     * gain: half the seeds x0.25-x4 (log-uniform; integer counts round and saturate)
     * mount: half the seeds 1.4-2.5 m above the road instead of the preset's height
+    * SINGLE_SWEEP_SHARE of the seeds: windows of one sweep without odometry (the cloud frame,
+      as the node runs without /odom), ending where the accumulated windows would
     """
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x5E75]))
     worn = rng.random() < 0.6
-    contrast = float(np.exp(rng.uniform(np.log(1.3), np.log(8.0))))
+    low, high = np.log(WORN_PAINT_RANGE)
+    contrast = float(np.exp(rng.uniform(low, high)))
     units = (None, *INTENSITY_SCALES)[int(rng.integers(4))]
     gain = float(np.exp(rng.uniform(np.log(0.25), np.log(4.0)))) if rng.random() < 0.5 else 1.0
     mount = float(rng.uniform(1.4, 2.5)) if rng.random() < 0.5 else None
     return {'paint_contrast': round(contrast, 3) if worn else None,
-            'markings': bool(rng.random() >= 0.05), 'intensity': units,
+            'markings': bool(rng.random() >= NO_MARKINGS_SHARE), 'intensity': units,
             'intensity_gain': round(gain, 3),
-            'mount_z': None if mount is None else round(mount, 3)}
+            'mount_z': None if mount is None else round(mount, 3),
+            'single_sweep': bool(rng.random() < SINGLE_SWEEP_SHARE)}
 
 
 def shard_path(out_dir: str | os.PathLike, seed: int) -> Path:
@@ -138,14 +149,16 @@ def shard_path(out_dir: str | os.PathLike, seed: int) -> Path:
 def make_shard(seed: int, settings: CacheSettings) -> dict[str, np.ndarray]:
     """Simulate one seed's windows and pack them into the shard arrays."""
     scenario = scenario_for_seed(seed, settings)
-    options = {k: v for k, v in scenario.items() if k != 'intensity_gain'}
+    options = {k: v for k, v in scenario.items() if k not in SAMPLE_OPTIONS}
     sim = Simulator(seed, sweeps=settings.sweeps_per_seed, **options)
     spec = BevSpec(settings.size_px, settings.resolution_m)
-    samples = list(training_samples(sim, settings.windows_per_seed,
-                                    sweeps_per_sample=settings.sweeps_per_sample,
-                                    stride=settings.stride, spec=spec,
+    how = dict(sweeps_per_sample=settings.sweeps_per_sample, stride=settings.stride)
+    if scenario.get('single_sweep'):
+        how = dict(sweeps_per_sample=1, stride=settings.stride,
+                   start=settings.sweeps_per_sample - 1, odometry=False)
+    samples = list(training_samples(sim, settings.windows_per_seed, spec=spec,
                                     intensity_gain=scenario.get('intensity_gain', 1.0),
-                                    intensity_encoding=settings.intensity_encoding))
+                                    intensity_encoding=settings.intensity_encoding, **how))
     lanes = [lane for s in samples for lane in s.lanes]
     counts = [len(s.lanes) for s in samples]
     arrays = {f'raster_{i:04d}': s.raster.astype(np.float16) for i, s in enumerate(samples)}
@@ -225,6 +238,10 @@ def _check_index(out_dir: Path, settings: CacheSettings) -> None:
     """cache.json must match the requested settings (written on the first build)."""
     index = out_dir / INDEX_NAME
     wanted = {'format': SHARD_FORMAT, 'settings': to_plain(settings)}
+    if settings.sensor_variation:  # its constants shape the shards too
+        wanted['variation'] = {'worn_paint_range': list(WORN_PAINT_RANGE),
+                               'no_markings_share': NO_MARKINGS_SHARE,
+                               'single_sweep_share': SINGLE_SWEEP_SHARE}
     if index.exists():
         stored = json.loads(index.read_text())
         if stored != wanted:

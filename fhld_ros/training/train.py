@@ -22,7 +22,7 @@ import shlex
 import time
 from pathlib import Path
 
-from fhld_ros.errors import CliError
+from fhld_ros.errors import ConfigError
 from fhld_ros.model.checkpoint import CheckpointError
 from fhld_ros.training.config import TrainConfig, load_config
 from fhld_ros.training.distributed import shutdown
@@ -60,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
         summary = train(cfg, out_dir, args.resume, args.max_minutes, args.device,
                         not args.quiet, command_line(args))
     except (ValueError, FileExistsError, FileNotFoundError, CheckpointError) as exc:
-        raise CliError(str(exc)) from exc
+        raise ConfigError(str(exc)) from exc
     finally:
         shutdown()
     if int(os.environ.get('RANK', '0')) == 0:
@@ -72,17 +72,17 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _read_config(path: Path, max_minutes: float | None) -> TrainConfig:
-    """The checked config, or one CliError line."""
+    """The checked config, or one ConfigError line."""
     if not path.is_file():
-        raise CliError(f'config not found: {path}')
+        raise ConfigError(f'config not found: {path}')
     if max_minutes is not None and max_minutes < 0:
-        raise CliError(f'--max-minutes must be >= 0, got {max_minutes:g}')
+        raise ConfigError(f'--max-minutes must be >= 0, got {max_minutes:g}')
     try:
         return load_config(path)
     except (ValueError, TypeError) as exc:
-        raise CliError(f'bad config {path}: {exc}') from exc
+        raise ConfigError(f'bad config {path}: {exc}') from exc
     except Exception as exc:  # YAML syntax errors
-        raise CliError(f'cannot read config {path}: {" ".join(str(exc).split())}') from exc
+        raise ConfigError(f'cannot read config {path}: {" ".join(str(exc).split())}') from exc
 
 
 def command_line(args: argparse.Namespace) -> str:
