@@ -122,7 +122,11 @@ class LaneDetectorNode(Node):
 
     def _create_interfaces(self) -> None:
         p = self.params
+        # Clouds one at a time, in arrival order (an older stamp resets the grid); odometry in
+        # a group of its own, so a pose arriving during a cloud's ingest runs on another worker
+        # (it waits for the pipeline lock) instead of keeping the executor awake until then.
         self.inputs = MutuallyExclusiveCallbackGroup()
+        odometry = MutuallyExclusiveCallbackGroup()
         # Reentrant on purpose: a poll that finds a detection running returns at once. In a
         # mutually exclusive group the timer would stay ready while its callback runs and
         # rclpy's executor would spin on it (measured: ~45 % of a core, detections 2x slower).
@@ -133,7 +137,7 @@ class LaneDetectorNode(Node):
                                if p.input_reliability == 'best_effort'
                                else ReliabilityPolicy.RELIABLE)
         self.create_subscription(Odometry, p.odom_topic, self.on_odometry, 50,
-                                 callback_group=self.inputs)
+                                 callback_group=odometry)
         out_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
         self.lanes_pub = self.create_publisher(MarkerArray, p.lanes_topic, out_qos)
         self.left_pub = self.create_publisher(Path, f'{p.lanes_topic}/ego_left', out_qos)
