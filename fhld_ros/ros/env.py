@@ -25,6 +25,8 @@ def loopback_dds_env(domain_id: int | None = None, base: dict | None = None) -> 
     """
     env = dict(os.environ if base is None else base)
     env['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(loopback_profile())
+    # its history memory policy and publish mode too (memory returned after bursts)
+    env['RMW_FASTRTPS_USE_QOS_FROM_XML'] = '1'
     env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     # ROS_LOCALHOST_ONLY is deprecated in Jazzy and, when set, makes rcl ignore the range above
     env.pop('ROS_LOCALHOST_ONLY', None)
