@@ -17,6 +17,7 @@ import torch
 from fhld_ros.bev import BevSpec
 from fhld_ros.classical import ClassicalLaneDetector
 from fhld_ros.evaluation.metrics import once_counts, once_counts_official, point_counts
+from fhld_ros.intensity import CONTRAST
 from fhld_ros.model.checkpoint import build_default_detector
 from fhld_ros.model.inference import TracedFeatures, serving_features
 from fhld_ros.rolling_grid import RollingBevGrid
@@ -70,7 +71,9 @@ def bench_bev() -> dict[str, float]:
 
     rng = np.random.default_rng(0)
     sweeps = [synthetic_sweep(rng) for _ in range(4)]
-    grid = RollingBevGrid(BevSpec(), accumulate_sec=1.0, max_sweeps=10)
+    # the shipped weights' encoding: each sweep's ground level measured (fhld_ros/intensity.py)
+    grid = RollingBevGrid(BevSpec(), accumulate_sec=1.0, max_sweeps=10,
+                          intensity_encoding=CONTRAST)
     state = {'k': 0}
 
     def insert() -> None:

@@ -92,7 +92,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--seeds', type=int, default=SEEDS, help='test seeds (default 56)')
     parser.add_argument('--windows-per-seed', type=int, default=WINDOWS_PER_SEED)
     parser.add_argument('--checkpoint', type=Path, help='FHLD weights (default: shipped)')
-    parser.add_argument('--score-threshold', type=float, default=0.5)
+    parser.add_argument('--score-threshold', type=float,
+                        default=DetectorParams().score_threshold, help='(default: the node\'s)')
     parser.add_argument('--sensor', choices=sorted(SENSORS),
                         help='every seed with this sensor preset instead of its own (e.g. '
                              'forward70, the forward-only scanner); topologies stay the same')
