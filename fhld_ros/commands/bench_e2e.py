@@ -5,8 +5,9 @@ process publishes simulated 64x1024 Ouster-like sweeps and their odometry at 10 
 clock and timestamps every /lanes message on arrival. Latency = /lanes arrival - publish time
 of the newest sweep it was computed from (the message's stamp). A sweep that never becomes the
 newest sweep of a /lanes message counts as dropped. Backlog growth compares the median latency
-of the last third of the run with the first third. The node's stage medians (node_stage_*_ms_p50,
-from its /diagnostics) say where the time goes.
+of the last third of the run with the first third, and so does the node's resident memory
+(sampled once a second). The node's stage medians (node_stage_*_ms_p50, from its /diagnostics)
+say where the time goes.
 """
 from __future__ import annotations
 
@@ -130,6 +131,35 @@ def _summary(seconds: float, published: dict[int, float], arrivals: list[tuple[i
     }
 
 
+class _RssSampler:
+    """The node's resident memory once a second while sweeps are published (a soak's memory
+    must stay flat): MB medians of the first and the last third of the samples."""
+
+    def __init__(self, pid: int) -> None:
+        self.path, self.samples = f'/proc/{pid}/status', []
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        while not self.stop.wait(1.0):
+            try:
+                with open(self.path) as status:
+                    self.samples.append(int(status.read().split('VmRSS:')[1].split()[0]) / 1024)
+            except (OSError, IndexError, ValueError):
+                return  # the node is gone
+
+    def summary(self) -> dict[str, float]:
+        self.stop.set()
+        self.thread.join()
+        third = len(self.samples) // 3
+        if not third:
+            return {}
+        first, last = np.median(self.samples[:third]), np.median(self.samples[-third:])
+        return {'node_rss_mb_first_third': float(first), 'node_rss_mb_last_third': float(last),
+                'node_rss_growth_mb': float(last - first)}
+
+
 def bench_e2e(seconds: float = SECONDS) -> dict[str, float]:
     os.environ.update(loopback_dds_env())  # before the node starts and rclpy.init reads it
     sweeps = _sweeps(DISTINCT_SWEEPS)
@@ -139,11 +169,13 @@ def bench_e2e(seconds: float = SECONDS) -> dict[str, float]:
     client = _BenchClient(context)
     try:
         client.wait_for(node)
+        rss = _RssSampler(node.pid)
         published = client.publish(sweeps, int(seconds * RATE_HZ))
+        memory = rss.summary()
         time.sleep(1.5)
     finally:
         node.terminate()
         node.wait(timeout=20)
         client.close()
         context.try_shutdown()
-    return _summary(seconds, published, client.arrivals, client.node_diag)
+    return {**_summary(seconds, published, client.arrivals, client.node_diag), **memory}
