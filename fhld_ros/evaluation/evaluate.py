@@ -298,7 +298,6 @@ def run(args: argparse.Namespace) -> int:
     frames = evaluate_bags(args)
     result = summary(frames, official=args.once_official)
     if args.per_frame:
-        check_file_output(args.per_frame, args.overwrite, _inputs(args), '--per-frame')  # again
         write_per_frame(frames, args.per_frame)
     if args.plots:
         written = plot_worst(frames, args.plots, args.worst, args.overwrite, _inputs(args))

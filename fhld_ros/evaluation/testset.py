@@ -51,7 +51,12 @@ from fhld_ros.rolling_grid import BevWindow
 from fhld_ros.ros.parameters import DetectorParams
 from fhld_ros.sim.lidar import SENSORS
 from fhld_ros.sim.simulator import Simulator
-from fhld_ros.training.cache import TEST_SEED_BASE, CacheSettings, scenario_for_seed
+from fhld_ros.training.cache import (
+    TEST_SEED_BASE,
+    CacheSettings,
+    scenario_for_seed,
+    single_sweep_windows,
+)
 from fhld_ros.training.samples import training_samples
 
 DETECTORS = ('classical', *FHLD_VARIANTS)
@@ -109,10 +114,8 @@ def _init(detectors: list[str], params: DetectorParams) -> None:
     _worker['detectors'] = detectors
     if 'classical' in detectors:
         _worker['classical'] = classical_detector()
-    _worker['encoding'] = ABSOLUTE
     if set(FHLD_VARIANTS) & set(detectors):
         _worker['fhld'] = fhld_variants(params, eager=True)
-        _worker['encoding'] = _worker['fhld'].intensity_encoding
 
 
 def _detect(window: BevWindow) -> dict[str, list[np.ndarray]]:
@@ -134,13 +137,13 @@ def evaluate_seed(seed: int, windows: int, sensor: str | None = None,
     cond = CONDITIONS[condition] if condition else Condition('')
     sim = Simulator(seed, sweeps=settings.sweeps_per_seed, **scenario, **cond.sim)
     # single sweeps end where the accumulated windows end: the same instants of the drive
-    how = dict(sweeps_per_sample=1, stride=settings.stride, start=settings.sweeps_per_sample - 1,
-               odometry=False) if cond.single_sweep else {}
+    how = single_sweep_windows(settings) if cond.single_sweep else {}
     point = {name: metrics.PointCounts() for name in _worker['detectors']}
     once = {name: metrics.LaneCounts() for name in _worker['detectors']}
     count, contrast = 0, []
+    encoding = getattr(_worker.get('fhld'), 'intensity_encoding', ABSOLUTE)
     for sample in training_samples(sim, windows, keep_window=True, intensity_gain=cond.gain,
-                                   intensity_encoding=_worker['encoding'], **how):
+                                   intensity_encoding=encoding, **how):
         contrast.append(sample.meta['paint_contrast'])
         half = sample.window.spec.length_m / 2
         for name, lanes in _detect(sample.window).items():

@@ -142,6 +142,13 @@ def sensor_variation(seed: int) -> dict:
             'single_sweep': bool(rng.random() < SINGLE_SWEEP_SHARE)}
 
 
+def single_sweep_windows(settings: CacheSettings) -> dict:
+    """training_samples options for windows of one sweep without odometry (the node without
+    /odom, the cloud frame) that end where the settings' accumulated windows end."""
+    return dict(sweeps_per_sample=1, stride=settings.stride,
+                start=settings.sweeps_per_sample - 1, odometry=False)
+
+
 def shard_path(out_dir: str | os.PathLike, seed: int) -> Path:
     return Path(out_dir) / f'shard_{seed:07d}.npz'
 
@@ -152,10 +159,8 @@ def make_shard(seed: int, settings: CacheSettings) -> dict[str, np.ndarray]:
     options = {k: v for k, v in scenario.items() if k not in SAMPLE_OPTIONS}
     sim = Simulator(seed, sweeps=settings.sweeps_per_seed, **options)
     spec = BevSpec(settings.size_px, settings.resolution_m)
-    how = dict(sweeps_per_sample=settings.sweeps_per_sample, stride=settings.stride)
-    if scenario.get('single_sweep'):
-        how = dict(sweeps_per_sample=1, stride=settings.stride,
-                   start=settings.sweeps_per_sample - 1, odometry=False)
+    how = (single_sweep_windows(settings) if scenario.get('single_sweep') else
+           dict(sweeps_per_sample=settings.sweeps_per_sample, stride=settings.stride))
     samples = list(training_samples(sim, settings.windows_per_seed, spec=spec,
                                     intensity_gain=scenario.get('intensity_gain', 1.0),
                                     intensity_encoding=settings.intensity_encoding, **how))

@@ -115,9 +115,10 @@ def start_run(cfg: TrainConfig, out_dir: Path, dist: Dist, resume: bool, command
     opt = torch.optim.Adam(module.parameters(), lr=t.lr, weight_decay=t.weight_decay)
     torch.manual_seed(rank_seed(cfg.seed, dist))  # anchor noise / negatives differ per rank
     state = RunState()
-    if t.init and not (resume and (out_dir / 'last.pt').exists()):
+    resuming = resume and (out_dir / 'last.pt').exists()
+    if t.init and not resuming:
         init_weights(module, t.init)
-    if resume and (out_dir / 'last.pt').exists():
+    if resuming:
         state = resume_run(out_dir / 'last.pt', module, opt, model_cfg, cfg.seed, dist)
         if dist.main:
             print(f'resuming {out_dir / "last.pt"} at iteration {state.iteration}',
