@@ -14,6 +14,8 @@ from fhld_ros.errors import ConfigError
 
 # subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
+    'autolabel': ('fhld_ros.commands.autolabel',
+                  '3D lane labels from 2D image lane labels and the LiDAR sweeps of a drive'),
     'bench': ('fhld_ros.commands.bench', 'time the pipeline stages on this machine (medians)'),
     'replay': ('fhld_ros.commands.replay', 'run the detector pipeline over a bag on bag time'),
     'play': ('fhld_ros.ros.play', 'publish a bag over DDS in real time with /clock'),

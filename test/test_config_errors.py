@@ -67,7 +67,7 @@ CASES = {
     'a directory': (['checkpoint:={root}/folder.pt'], '{root}/folder.pt is not a regular file'),
     '/dev/zero': (['checkpoint:=/dev/zero'], 'checkpoint /dev/zero is not a regular file'),
     'raster of another size': (['size_px:=33'], 'expects a 640 px raster at 0.04 m with 4 '
-                               'channels, the input is 33 px'),
+                               'channels, the input (parameters size_px, resolution_m) is 33 px'),
     'integer for a double': (['rate_hz:=0'],
                              'rate_hz must be a number with a decimal point (e.g. 10.0), not '
                              'integer 0'),

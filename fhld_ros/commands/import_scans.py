@@ -5,8 +5,11 @@ order: 2.pcd before 10.pcd; a folder mixing both kinds is refused, since their o
 intensity units would be a guess). The bag has /points (sensor_msgs/PointCloud2: float32 x, y,
 z, intensity in the file's own units, organised when the PCD is) and, with --poses, /odom
 (nav_msgs/Odometry: the sensor's pose, header.frame_id --odom-frame, child_frame_id the cloud
-frame, stamped like its sweep), so `fhld replay` needs no extrinsic. OUT_BAG follows bagio's
-output rule (refused when it exists without --overwrite, is not a bag, or overlaps an input).
+frame, stamped like its sweep), so `fhld replay` needs no extrinsic. With --images and --calib
+it also holds the camera, as `fhld simulate --camera` writes it for `fhld autolabel`: one image
+per sweep (natural name order) on /camera/image_raw and /camera/camera_info at the sweep's
+stamp, and the calibration's extrinsic on /tf_static. OUT_BAG follows bagio's output rule
+(refused when it exists without --overwrite, is not a bag, or overlaps an input).
 """
 from __future__ import annotations
 
@@ -19,6 +22,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from fhld_ros.annotation.calibration import CameraCalibration
+from fhld_ros.annotation.camera_topics import write_camera
 from fhld_ros.bagio import BagWriter, check_output
 from fhld_ros.errors import ConfigError
 from fhld_ros.importing import kitti
@@ -27,6 +32,7 @@ from msg_adapters.odometry import make_odometry
 from msg_adapters.pointcloud2 import create_cloud
 
 KINDS = {'.pcd': 'PCD', '.bin': 'KITTI .bin'}
+IMAGE_SUFFIXES = ('.png', '.jpg', '.jpeg')
 DEFAULT_START_S = '1700000000'  # a plausible wall-clock time, as `fhld simulate` uses
 
 
@@ -49,6 +55,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='KITTI calib.txt: --poses are KITTI camera-0 poses; converted to '
                         'LiDAR poses with its Tr (velodyne -> camera)')
     parser.add_argument('--odom-frame', default='odom', help='/odom header frame (default odom)')
+    parser.add_argument('--images', type=Path, metavar='SRC',
+                        help='camera images (.png/.jpg file or folder), one per sweep in name '
+                        'order; needs --calib')
+    parser.add_argument('--calib', type=Path, metavar='YAML',
+                        help='camera calibration of --images (docs/annotation.md)')
     parser.add_argument('--overwrite', action='store_true',
                         help='replace an existing OUT_BAG (only a rosbag2 bag folder)')
     parser.add_argument('--quiet', action='store_true', help='no progress bar')
@@ -113,6 +124,37 @@ def sensor_poses(count: int, args: argparse.Namespace) -> np.ndarray | None:
     return poses
 
 
+def collect_images(args: argparse.Namespace, count: int) -> list[Path]:
+    """The --images files in natural name order, one per sweep ([] without --images)."""
+    if (args.images is None) != (args.calib is None):
+        raise ConfigError('--images and --calib go together: the images need their calibration')
+    if args.images is None:
+        return []
+    src = args.images
+    files = [src] if src.is_file() else sorted(
+        (p for p in src.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
+        key=_natural_key) if src.is_dir() else None
+    if files is None:
+        raise ConfigError(f'--images {src} does not exist')
+    if len(files) != count:
+        raise ConfigError(f'--images {src} has {len(files)} images for {count} sweeps')
+    return files
+
+
+def read_image(path: Path, width: int, height: int) -> np.ndarray:
+    """(H, W, 3) uint8 RGB of an image file that must be width x height."""
+    from PIL import Image, UnidentifiedImageError
+    try:
+        with Image.open(path) as image:
+            rgb = np.asarray(image.convert('RGB'))
+    except (OSError, UnidentifiedImageError) as exc:
+        raise ConfigError(f'--images {path}: cannot read it ({exc})') from exc
+    if rgb.shape[:2] != (height, width):
+        raise ConfigError(f'--images {path} is {rgb.shape[1]}x{rgb.shape[0]}, the calibration '
+                          f'says {width}x{height}')
+    return rgb
+
+
 def _check_frames(args: argparse.Namespace) -> None:
     for option, name in (('--frame-id', args.frame_id), ('--odom-frame', args.odom_frame)):
         if not name or any(c.isspace() for c in name):
@@ -135,10 +177,12 @@ def run(args: argparse.Namespace) -> int:
     _check_frames(args)
     files, suffix = collect_sources(args.src)
     inputs = {'SRC': args.src, '--poses': args.poses, '--times': args.times,
-              '--kitti-calib': args.kitti_calib}
+              '--kitti-calib': args.kitti_calib, '--images': args.images, '--calib': args.calib}
     check_output(args.out_bag, args.overwrite, inputs)
     stamps = sweep_stamps(len(files), args)
     poses = sensor_poses(len(files), args)
+    images = collect_images(args, len(files))
+    calib = CameraCalibration.from_yaml(args.calib) if images else None
     points_total, moved = 0, 0
     with BagWriter(args.out_bag, args.overwrite, inputs) as bag:
         family = bag.family
@@ -155,11 +199,14 @@ def run(args: argparse.Namespace) -> int:
             bag.write('/points', 'sensor_msgs/msg/PointCloud2', stamp,
                       create_cloud(cloud_cls, family.header(stamp, args.frame_id), points,
                                    height=height))
+            if calib is not None:
+                write_camera(bag, calib, args.frame_id, stamp,
+                             read_image(images[k], calib.width, calib.height), first=k == 0)
             points_total += len(points)
     if moved:  # points stay in the file's frame; the viewpoint is no pose the node can use
         print(f'note: {moved} file(s) have a non-identity VIEWPOINT, which is not applied',
               file=sys.stderr)
-    odom = ' and /odom' if poses is not None else ''
+    odom = (' and /odom' if poses is not None else '') + (' and the camera' if images else '')
     print(f'imported {len(files)} {KINDS[suffix]} sweeps ({points_total} points) to /points'
           f'{odom} -> {args.out_bag}')
     return 0

@@ -116,8 +116,8 @@ def load_checkpoint(path: str | os.PathLike, expect: FhldConfig | None = None,
         if stored != wanted:
             raise CheckpointError(
                 f'checkpoint {path} expects a {stored[0]} px raster at {stored[1]} m with '
-                f'{stored[2]} channels, the input is {wanted[0]} px at {wanted[1]} m with '
-                f'{wanted[2]} channels')
+                f'{stored[2]} channels, the input (parameters size_px, resolution_m) is '
+                f'{wanted[0]} px at {wanted[1]} m with {wanted[2]} channels')
     model = FhldDetector(config)
     try:
         model.load_state_dict(payload['state_dict'], strict=True)

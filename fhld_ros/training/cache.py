@@ -12,6 +12,7 @@ reused by every training run (docs/design.md §5). One shard per simulator seed,
 * ``lane_ids``      (L,) int64 scene line index of each lane
 * ``window_to_odom`` (n, 4, 4) float64, ``stamps_ns`` (n,) int64, ``sweeps`` (n,) int64
 * ``meta``          JSON string: seed, scenario (sensor, topology, ...), road class, raster spec
+                    (shards of labelled bags, training/bag_source.py: the bag and shard index)
 
 Shards are written to a temporary file and renamed, so a shard either exists complete or not at
 all; a build skips existing shards and so resumes after an interruption. The directory's
@@ -44,7 +45,7 @@ from fhld_ros.intensity import CONTRAST, INTENSITY_ENCODINGS
 from fhld_ros.sim.layout import TOPOLOGIES
 from fhld_ros.sim.lidar import INTENSITY_SCALES, SENSORS, SPINNING
 from fhld_ros.sim.simulator import Simulator
-from fhld_ros.training.samples import training_samples
+from fhld_ros.training.samples import TrainingSample, training_samples
 
 SHARD_FORMAT = 1
 SAMPLE_OPTIONS = ('intensity_gain', 'single_sweep')  # scenario keys that are not Simulator's
@@ -164,6 +165,16 @@ def make_shard(seed: int, settings: CacheSettings) -> dict[str, np.ndarray]:
     samples = list(training_samples(sim, settings.windows_per_seed, spec=spec,
                                     intensity_gain=scenario.get('intensity_gain', 1.0),
                                     intensity_encoding=settings.intensity_encoding, **how))
+    return pack_samples(samples, {
+        'format': SHARD_FORMAT, 'seed': seed, 'windows': len(samples),
+        'road_class': sim.scene.road_class, 'scenario': scenario,
+        'size_px': settings.size_px, 'resolution_m': settings.resolution_m,
+        'sweeps_per_sample': settings.sweeps_per_sample, 'stride': settings.stride})
+
+
+def pack_samples(samples: list[TrainingSample], meta: dict) -> dict[str, np.ndarray]:
+    """The shard arrays of windows (the module doc's layout; meta as its JSON string).
+    Each sample's meta holds 'line_ids', 'stamp_ns' and 'sweep'."""
     lanes = [lane for s in samples for lane in s.lanes]
     counts = [len(s.lanes) for s in samples]
     arrays = {f'raster_{i:04d}': s.raster.astype(np.float16) for i, s in enumerate(samples)}
@@ -177,11 +188,7 @@ def make_shard(seed: int, settings: CacheSettings) -> dict[str, np.ndarray]:
         window_to_odom=np.stack([s.window_to_odom for s in samples]),
         stamps_ns=np.array([s.meta['stamp_ns'] for s in samples], dtype=np.int64),
         sweeps=np.array([s.meta['sweep'] for s in samples], dtype=np.int64),
-        meta=np.array(json.dumps({
-            'format': SHARD_FORMAT, 'seed': seed, 'windows': len(samples),
-            'road_class': sim.scene.road_class, 'scenario': scenario,
-            'size_px': settings.size_px, 'resolution_m': settings.resolution_m,
-            'sweeps_per_sample': settings.sweeps_per_sample, 'stride': settings.stride})))
+        meta=np.array(json.dumps(meta)))
     return arrays
 
 

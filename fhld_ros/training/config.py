@@ -4,11 +4,24 @@
 training/augment.py; ``data`` and ``train`` are described field by field below. Unknown keys
 are errors; in lists, ``none`` is None (the layout's own topology), and ``sensors`` /
 ``topologies`` also take ``all``.
+
+``data.bags`` adds labelled bags (/points, /odom, /lanes_gt) as training windows beside the
+simulator cache (training/bag_source.py), each entry a mapping:
+
+    bags:
+      - path: out/autolabel/drive_0      # the bag (checked when the config loads)
+        weight: 0.5                      # > 0: its share of the draws ...
+        lanes_topic: /lanes_gt           # optional: the GT MarkerArray topic
+    sim_weight: 1.0                      # ... relative to the simulator cache's (0: bags only)
+
+Each batch item is drawn from source i with probability weight_i / (sim_weight + sum of the
+bags' weights), a window of it uniformly (dataset.WeightedSourceSampler).
 """
 from __future__ import annotations
 
+import math
 import os
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +30,7 @@ import yaml
 from fhld_ros.dataclass_dict import from_dict
 from fhld_ros.model.config import FhldConfig
 from fhld_ros.training.augment import AugmentParams
+from fhld_ros.training.bag_source import LabelledBag
 from fhld_ros.training.cache import ALL_SENSORS, ALL_TOPOLOGIES, TEST_SEED_BASE, CacheSettings
 
 SCHEDULES = ('constant', 'cosine', 'step')
@@ -41,6 +55,10 @@ class DataSection:
     # training seeds draw sensor and road variation (cache.sensor_variation); held-out never
     sensor_variation: bool = False
     cache_workers: int = 2
+    # labelled bags as more training windows (module doc; training/bag_source.py), cached in
+    # <parent of train_cache>/bags/ by the same --cache-only step
+    bags: tuple[LabelledBag, ...] = ()
+    sim_weight: float = 1.0  # the simulator cache's weight among the sources (0: bags only)
 
 
 @dataclass(frozen=True)
@@ -107,8 +125,11 @@ def load_config(path: str | os.PathLike) -> TrainConfig:
     if unknown:
         raise ValueError(f'unknown section(s) {", ".join(unknown)} '
                          f'(known: {", ".join(SECTIONS)})')
+    data = _section(DataSection, raw.get('data'), 'data')
+    data = replace(data, bags=tuple(from_dict(LabelledBag, entry, where=f'data.bags[{i}]')
+                                    for i, entry in enumerate(data.bags)))
     cfg = TrainConfig(seed=int(raw.get('seed', 0)), model=dict(raw.get('model') or {}),
-                      data=_section(DataSection, raw.get('data'), 'data'),
+                      data=data,
                       augment=_section(AugmentParams, raw.get('augment'), 'augment'),
                       train=_section(TrainSection, raw.get('train'), 'train'))
     FhldConfig.from_dict(cfg.model).validate()
@@ -129,6 +150,13 @@ def _check(t: TrainSection, d: DataSection) -> None:
     if max(d.train_seeds[0], d.test_seeds[0]) < min(d.train_seeds[1], d.test_seeds[1]):
         raise ValueError(f'data.train_seeds {list(d.train_seeds)} and data.test_seeds '
                          f'{list(d.test_seeds)} overlap: the test set must be held out')
+    w = d.sim_weight
+    if isinstance(w, bool) or not isinstance(w, (int, float)) or not (math.isfinite(w) and w >= 0):
+        raise ValueError(f'data.sim_weight must be a number >= 0, not {w!r}')
+    if w == 0 and not d.bags:
+        raise ValueError('data.sim_weight is 0 and there are no data.bags: nothing to train on')
+    for i, bag in enumerate(d.bags):
+        bag.check(f'data.bags[{i}]')
 
 
 def cache_settings(cfg: TrainConfig, split: str) -> CacheSettings:

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor
 from torch.nn.parallel import DistributedDataParallel
-from torch.utils.data import DataLoader, DistributedSampler
+from torch.utils.data import DataLoader, Dataset
 
 from fhld_ros.evaluation.metrics import PointCounts, point_counts
 from fhld_ros.model.checkpoint import load_checkpoint
@@ -31,9 +31,16 @@ from fhld_ros.model.config import FhldConfig
 from fhld_ros.model.detector import FhldDetector
 from fhld_ros.model.losses import FhldCriterion
 from fhld_ros.training.augment import warp_rasters
+from fhld_ros.training.bag_source import bag_cache
 from fhld_ros.training.cache import build_cache, shard_path
 from fhld_ros.training.config import TrainConfig, TrainSection, cache_settings
-from fhld_ros.training.dataset import CacheDataset, collate
+from fhld_ros.training.dataset import (
+    CacheDataset,
+    SourcesDataset,
+    collate,
+    training_sampler,
+    training_set,
+)
 from fhld_ros.training.distributed import Dist, any_rank, barrier, setup_distributed
 from fhld_ros.training.resume import RunState, rank_seed, resume_run, save_run
 from fhld_ros.training.runlog import LossMeter, RunLog
@@ -54,6 +61,8 @@ def train(cfg: TrainConfig, out_dir: Path, resume: bool = False,
         return summary
     run = start_run(cfg, out_dir, dist, resume, command or f'fhld train (config seed {cfg.seed})')
     train_set, test_set = datasets(cfg, dist)
+    if isinstance(train_set, SourcesDataset):  # provenance of the labelled bags
+        run.state.bag_sources = train_set.provenance
     summary['stopped'] = fit(run, train_set, test_set, deadline, progress)
     summary.update(iteration=run.state.iteration, best_f1=run.state.best_f1,
                    eval=run.state.last_eval, skipped_steps=run.skipped)
@@ -62,10 +71,13 @@ def train(cfg: TrainConfig, out_dir: Path, resume: bool = False,
 
 def ensure_caches(cfg: TrainConfig, deadline: float | None, workers: int | None = None,
                   progress: bool = True, world: int = 1) -> bool:
-    """Build missing shards (single process only). True when both caches are complete."""
+    """Build missing shards and labelled bags' windows (single process only). True when every
+    cache is complete."""
     complete = True
     for split, cache_dir, (lo, hi) in (('test', cfg.data.test_cache, cfg.data.test_seeds),
                                        ('train', cfg.data.train_cache, cfg.data.train_seeds)):
+        if split == 'train' and cfg.data.sim_weight == 0:  # bags only
+            continue
         missing = [s for s in range(lo, hi) if not shard_path(cache_dir, s).exists()]
         if not missing:
             continue
@@ -80,6 +92,11 @@ def ensure_caches(cfg: TrainConfig, deadline: float | None, workers: int | None 
                   f'{report.seconds:.0f} s ({report.windows_per_hour:.0f} windows/h)',
                   file=sys.stderr)
         complete &= report.complete
+    for bag in cfg.data.bags:  # reading a bag takes seconds to minutes, not hours: no deadline
+        if deadline is not None and time.monotonic() >= deadline:
+            return False
+        bag_cache(bag, cache_settings(cfg, 'train'), cfg.data.train_cache, build=world == 1,
+                  progress=progress)
     return complete
 
 
@@ -143,18 +160,17 @@ def init_weights(module: FhldDetector, path: str) -> None:
                          f'{str(exc).splitlines()[0]}') from exc
 
 
-def datasets(cfg: TrainConfig, dist: Dist) -> tuple[CacheDataset, CacheDataset]:
-    """Augmented training windows and the held-out test windows, at the model's raster."""
+def datasets(cfg: TrainConfig, dist: Dist) -> tuple[Dataset, CacheDataset]:
+    """Augmented training windows (with data.bags from several sources) and the held-out test
+    windows, at the model's raster."""
     size = FhldConfig.from_dict(cfg.model).size_px
     # on a GPU the loader only decompresses; the batch is warped (augmented) on the device
-    train_set = CacheDataset(cfg.data.train_cache, size, cfg.augment, cfg.seed,
-                             seeds=range(*cfg.data.train_seeds),
-                             defer_warp=dist.device.type == 'cuda')
+    train_set = training_set(cfg, size, defer_warp=dist.device.type == 'cuda')
     test_set = CacheDataset(cfg.data.test_cache, size, None, seeds=range(*cfg.data.test_seeds))
     return train_set, test_set
 
 
-def fit(run: Run, train_set: CacheDataset, test_set: CacheDataset, deadline: float | None,
+def fit(run: Run, train_set: Dataset, test_set: CacheDataset, deadline: float | None,
         progress: bool) -> str | None:
     """Iterate to the end or to a stop; the reason for an early stop ('time budget', 'signal')."""
     t, dist = run.cfg.train, run.dist
@@ -201,12 +217,11 @@ def learning_rate(it: int, t: TrainSection) -> float:
     return t.lr * warm * factor
 
 
-def batch_stream(dataset: CacheDataset, batch_size: int, start_it: int, total: int, dist: Dist,
+def batch_stream(dataset: Dataset, batch_size: int, start_it: int, total: int, dist: Dist,
                  seed: int, num_workers: int, pin: bool) -> Iterator[tuple[int, dict]]:
-    """(iteration, batch) from start_it to total; epoch e is DistributedSampler's
-    permutation for e, so iteration it always sees the same windows."""
-    sampler = DistributedSampler(dataset, num_replicas=dist.world, rank=dist.rank,
-                                 shuffle=True, seed=seed, drop_last=True)
+    """(iteration, batch) from start_it to total; epoch e is the sampler's draw for e
+    (training_sampler), so iteration it always sees the same windows."""
+    sampler = training_sampler(dataset, dist.world, dist.rank, seed)
     per_epoch = len(sampler) // batch_size
     if per_epoch == 0:
         raise ValueError(f'{len(dataset)} training windows are fewer than one batch of '

@@ -76,6 +76,28 @@ def _window_sweeps(n_sweeps: int, n: int | None, per_sample: int, stride: int, s
         done, j = end, j + 1
 
 
+def window_ends(n_sweeps: int, per_sample: int, stride: int, start: int = 0) -> list[int]:
+    """Index of the newest sweep of every window of a run of n_sweeps (training_samples'
+    rule, for sweeps that come from elsewhere, such as a bag)."""
+    return [k for k, newest in _window_sweeps(n_sweeps, None, per_sample, stride, start)
+            if newest]
+
+
+def accumulation(sweeps_per_sample: int) -> tuple[float, int]:
+    """(accumulate_sec, max_sweeps) of a window of sweeps_per_sample 10 Hz sweeps: the age
+    limit lies half a period from the oldest sweep wanted and from the one before it, so stamp
+    jitter neither drops the one nor keeps the other."""
+    return sweeps_per_sample * 0.1 - 0.05, sweeps_per_sample
+
+
+def lanes_in_window(lines: list[np.ndarray], window_to_world: np.ndarray, half: float
+                    ) -> tuple[list[np.ndarray], list[int]]:
+    """World polylines in the window frame (window_to_world: the window's pose), cut to the
+    window square |x|, |y| < half; the pieces and their source line index (clip_to_square)."""
+    rot, origin = window_to_world[:3, :3], window_to_world[:3, 3]
+    return clip_to_square([(line - origin) @ rot for line in lines], half)
+
+
 def training_samples(sim: Simulator, n: int | None = None, sweeps_per_sample: int = 10,
                      stride: int | None = None, spec: BevSpec | None = None,
                      keep_window: bool = False, intensity_gain: float = 1.0,
@@ -106,8 +128,9 @@ def training_samples(sim: Simulator, n: int | None = None, sweeps_per_sample: in
         raise ValueError(f'intensity_gain must be > 0, got {intensity_gain}')
     fam = rosbags_family()
     cloud_cls = fam.cls('sensor_msgs/msg/PointCloud2')
-    grid = RollingBevGrid(spec, accumulate_sec=sweeps_per_sample * 0.1 - 0.05,
-                          max_sweeps=sweeps_per_sample, intensity_encoding=intensity_encoding)
+    accumulate_sec, max_sweeps = accumulation(sweeps_per_sample)
+    grid = RollingBevGrid(spec, accumulate_sec=accumulate_sec, max_sweeps=max_sweeps,
+                          intensity_encoding=intensity_encoding)
     for k, newest in _window_sweeps(len(sim), n, sweeps_per_sample, stride, start):
         sweep = sim.sweep(k)
         points = scale_intensity(sweep.points, intensity_gain)
@@ -121,8 +144,7 @@ def training_samples(sim: Simulator, n: int | None = None, sweeps_per_sample: in
         # the window frame in the world: the newest sweep's gravity-aligned pose, or without
         # odometry the sensor frame itself (pitch and roll included)
         true_frame = yaw_frame(sweep.sensor_to_odom) if odometry else sweep.sensor_to_odom
-        local = [(line - true_frame[:3, 3]) @ true_frame[:3, :3] for line in sim.scene.lane_lines]
-        lanes, src = clip_to_square(local, spec.length_m / 2)
+        lanes, src = lanes_in_window(sim.scene.lane_lines, true_frame, spec.length_m / 2)
         meta = {'seed': sim.seed, 'sweep': k, 'stamp_ns': sweep.stamp_ns,
                 'road_class': sim.scene.road_class, 'sensor': sim.config.sensor,
                 'sweeps': len(grid), 'line_ids': src,

@@ -3,10 +3,12 @@
 Data: the training cache (larger rasters, augmented and cropped to the model's input) and a
 held-out test cache of other seeds at the model's exact raster (training/cache.py); missing
 shards are simulated first (single process; under torchrun the cache must exist, build it with
-``--cache-only``). The loop, evaluation and checkpoints are training/loop.py: best.pt by F1@10
-on the test cache, last.pt with optimizer and RNG state besides. Both are
-fhld_ros.model.checkpoint files (torch.load(weights_only=True)) with the training config and
-command line inside; best.pt loads with load_checkpoint like the shipped weights.
+``--cache-only``). ``data.bags`` adds the windows of labelled bags, drawn beside the simulator's
+by weight (training/bag_source.py, cached by the same step). The loop, evaluation and
+checkpoints are training/loop.py: best.pt by F1@10 on the test cache, last.pt with optimizer
+and RNG state besides. Both are fhld_ros.model.checkpoint files (torch.load(weights_only=True))
+with the training config and command line inside; best.pt loads with load_checkpoint like the
+shipped weights.
 
 Resume is exact (training/resume.py). ``--max-minutes`` (or SIGINT/SIGTERM) stops after the
 current iteration with a checkpoint. Multi-GPU / multi-machine:

@@ -1,0 +1,174 @@
+"""A camera's intrinsics and its pose relative to the LiDAR, and projection of LiDAR points into
+its image (OpenCV's pinhole + plumb_bob model; pixel (0, 0)'s centre is at u = v = 0).
+
+Read from a bag (`/camera/camera_info` + `/tf_static`) or from a calibration YAML
+(docs/annotation.md, "Calibration").
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from fhld_ros.errors import ConfigError
+from msg_adapters.camera import camera_info_values, tf_transforms
+
+MIN_DEPTH_M = 0.1  # points nearer the image plane than this are not projected
+
+
+@dataclass(frozen=True)
+class CameraCalibration:
+    width: int
+    height: int
+    K: np.ndarray  # (3, 3)
+    D: np.ndarray  # (5,) plumb_bob k1 k2 p1 p2 k3; zeros: no distortion
+    T_camera_cloud: np.ndarray  # (4, 4): cloud (LiDAR) frame -> camera optical frame
+    camera_frame: str = 'camera'
+    cloud_frame: str = 'lidar'
+
+    def __post_init__(self) -> None:
+        problem = _problem(self)
+        if problem:
+            raise ConfigError(f'camera calibration: {problem}')
+
+    def to_camera(self, xyz: np.ndarray) -> np.ndarray:
+        """(N, 3) cloud-frame points -> (N, 3) camera optical frame."""
+        return np.asarray(xyz, dtype=np.float64) @ self.T_camera_cloud[:3, :3].T + \
+            self.T_camera_cloud[:3, 3]
+
+    def project(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Cloud-frame points -> pixels (N, 2), depth (N,) along the optical axis, and whether
+        each lands in the image in front of the camera."""
+        return self.project_camera(self.to_camera(xyz))
+
+    def project_camera(self, cam: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The same for points already in the camera optical frame."""
+        depth = cam[:, 2]
+        ahead = depth > MIN_DEPTH_M
+        safe = np.where(ahead, depth, 1.0)
+        x, y = cam[:, 0] / safe, cam[:, 1] / safe
+        k1, k2, p1, p2, k3 = self.D
+        if np.any(self.D):
+            r2 = x * x + y * y
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            x, y = (x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
+                    y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)
+            # far outside the field of view the polynomial folds back into the image
+            ahead &= r2 < 4.0 * self.max_r2
+        K = self.K
+        uv = np.stack([K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]], axis=1)
+        inside = ahead & (uv[:, 0] >= 0) & (uv[:, 0] < self.width) & (uv[:, 1] >= 0) & \
+            (uv[:, 1] < self.height)
+        return uv, depth, inside
+
+    @property
+    def max_r2(self) -> float:
+        """Squared normalised radius of the image corners (undistorted estimate)."""
+        corners = np.array([[0, 0], [self.width, 0], [0, self.height], [self.width, self.height]],
+                           dtype=np.float64)
+        x = (corners[:, 0] - self.K[0, 2]) / self.K[0, 0]
+        y = (corners[:, 1] - self.K[1, 2]) / self.K[1, 1]
+        return float(np.max(x * x + y * y))
+
+    @property
+    def camera_in_cloud(self) -> np.ndarray:
+        """The camera's pose in the cloud frame (4, 4)."""
+        return np.linalg.inv(self.T_camera_cloud)
+
+    # -- files and messages ------------------------------------------------------------------
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> CameraCalibration:
+        path = Path(path)
+        try:
+            data = yaml.safe_load(path.read_text())
+        except (OSError, yaml.YAMLError) as exc:
+            raise ConfigError(f'--calib {path}: cannot read it ({exc.__class__.__name__}: '
+                              f'{str(exc).splitlines()[0]})') from exc
+        if not isinstance(data, dict):
+            raise ConfigError(f'--calib {path}: expected a mapping with width, height, K, '
+                              'T_camera_cloud')
+        missing = [k for k in ('width', 'height', 'K', 'T_camera_cloud') if k not in data]
+        if missing:
+            raise ConfigError(f'--calib {path}: missing {", ".join(missing)}')
+        unknown = sorted(set(data) - {'width', 'height', 'K', 'D', 'T_camera_cloud',
+                                      'camera_frame', 'cloud_frame'})
+        if unknown:
+            raise ConfigError(f'--calib {path}: unknown key {unknown[0]!r}')
+        try:
+            return cls(int(data['width']), int(data['height']),
+                       np.asarray(data['K'], dtype=np.float64).reshape(3, 3),
+                       _distortion(data.get('D')),
+                       np.asarray(data['T_camera_cloud'], dtype=np.float64).reshape(4, 4),
+                       str(data.get('camera_frame', 'camera')),
+                       str(data.get('cloud_frame', 'lidar')))
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f'--calib {path}: {exc}') from exc
+
+    def to_yaml(self, path: str | Path) -> None:
+        data = {'width': self.width, 'height': self.height,
+                'K': [float(v) for v in self.K.ravel()], 'D': [float(v) for v in self.D],
+                'T_camera_cloud': [[float(v) for v in row] for row in self.T_camera_cloud],
+                'camera_frame': self.camera_frame, 'cloud_frame': self.cloud_frame}
+        Path(path).write_text('# fhld camera calibration (docs/annotation.md)\n' +
+                              yaml.safe_dump(data, sort_keys=False, default_flow_style=None))
+
+    @classmethod
+    def from_messages(cls, camera_info: Any, tf_static: list[Any], cloud_frame: str
+                      ) -> CameraCalibration:
+        """From a CameraInfo and the /tf_static messages: the transform may be stored either
+        way round between the cloud frame and the camera_info's frame."""
+        width, height, K, D, camera_frame = camera_info_values(camera_info)
+        if not camera_frame:
+            raise ConfigError('/camera/camera_info has an empty frame_id')
+        T_camera_cloud = None
+        for msg in tf_static:
+            for parent, child, T_parent_child in tf_transforms(msg):
+                if (parent, child) == (cloud_frame, camera_frame):
+                    T_camera_cloud = np.linalg.inv(T_parent_child)
+                elif (parent, child) == (camera_frame, cloud_frame):
+                    T_camera_cloud = T_parent_child
+        if T_camera_cloud is None:
+            raise ConfigError(f'no /tf_static transform between {cloud_frame} (the clouds) and '
+                              f'{camera_frame} (the camera); give --calib YAML')
+        D = np.asarray(D, dtype=np.float64).ravel()
+        if D.size > 5 and np.any(D[5:]):
+            raise ConfigError('/camera/camera_info: distortion beyond plumb_bob (k4..k6) is not '
+                              'supported; give an undistorted camera or --calib YAML')
+        try:
+            d = _distortion(D[:5])
+        except ValueError as exc:
+            raise ConfigError(f'/camera/camera_info: {exc}') from exc
+        return cls(int(width), int(height), np.asarray(K, dtype=np.float64).reshape(3, 3), d,
+                   T_camera_cloud, camera_frame, cloud_frame)
+
+
+def _distortion(values: Any) -> np.ndarray:
+    d = np.zeros(5) if values is None or len(values) == 0 else \
+        np.asarray(values, dtype=np.float64).ravel()
+    if d.size == 4:  # k1 k2 p1 p2, as many calibration tools write it
+        d = np.append(d, 0.0)
+    if d.size != 5:
+        raise ValueError(f'D must hold 4 or 5 plumb_bob coefficients, got {d.size}')
+    return d
+
+
+def _problem(c: CameraCalibration) -> str | None:
+    if c.width <= 0 or c.height <= 0:
+        return f'image size {c.width}x{c.height} is not positive'
+    K, T = np.asarray(c.K), np.asarray(c.T_camera_cloud)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+        return 'K must be a finite 3x3 matrix'
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        return f'K has focal lengths {K[0, 0]:g}, {K[1, 1]:g}; both must be > 0'
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return 'T_camera_cloud must be a finite 4x4 matrix'
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0 or \
+            not np.allclose(T[3], [0, 0, 0, 1]):
+        return 'T_camera_cloud is not a rigid transform (rotation part not orthonormal)'
+    if np.asarray(c.D).shape != (5,) or not np.all(np.isfinite(c.D)):
+        return 'D must hold 5 finite plumb_bob coefficients'
+    return None

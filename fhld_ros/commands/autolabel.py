@@ -1,0 +1,218 @@
+"""`fhld autolabel IN_BAG OUT_BAG --labels2d DIR`: 3D lane labels from 2D image labels and the
+drive's LiDAR sweeps (ONCE-3DLanes section 3.2; fhld_ros/annotation, docs/annotation.md).
+
+IN_BAG holds /points, optionally /odom (sweeps are then accumulated), and the camera: its
+calibration from /camera/camera_info + /tf_static, or --calib YAML, and its image stamps from
+/camera/camera_info or /camera/image_raw (without either, labels are matched to /points
+stamps). Each label file (`<stamp_ns>.json`) labels the image at that stamp. OUT_BAG gets one
+/lanes message (the /lanes contract: odometry frame, else the cloud frame) per labelled image,
+so `fhld eval OUT_BAG IN_BAG` scores it against /lanes_gt. --once-json DIR also writes the
+ONCE-3DLanes layout (lanes in the camera frame) per image. OUT_BAG and --once-json follow
+bagio's output rule.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from fhld_ros.annotation.autolabel import Autolabeler, LabelledImage, PoseTrack
+from fhld_ros.annotation.calibration import CameraCalibration
+from fhld_ros.annotation.camera_topics import CAMERA_INFO, IMAGE, TF_STATIC
+from fhld_ros.annotation.figure import draw_autolabel
+from fhld_ros.annotation.labels2d import read_label_dir
+from fhld_ros.bagio import (
+    BagWriter,
+    check_file_output,
+    check_output,
+    read_messages,
+    topic_counts,
+    write_file_atomically,
+)
+from fhld_ros.errors import ConfigError
+from msg_adapters.camera import msg_to_image
+from msg_adapters.family import stamp_to_ns
+from msg_adapters.lanes import lanes_to_marker_array
+from msg_adapters.odometry import odometry_to_matrix
+from msg_adapters.pointcloud2 import read_xyzi
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument('in_bag', type=Path, metavar='IN_BAG',
+                        help='bag with /points (+ /odom) and the camera (or --calib)')
+    parser.add_argument('out_bag', type=Path, metavar='OUT_BAG', help='bag to write /lanes to')
+    parser.add_argument('--labels2d', type=Path, required=True, metavar='DIR',
+                        help='2D lane labels, one <stamp_ns>.json per image')
+    parser.add_argument('--calib', type=Path, metavar='YAML',
+                        help='camera calibration (instead of /camera/camera_info + /tf_static)')
+    parser.add_argument('--once-json', type=Path, metavar='DIR',
+                        help='also write ONCE-3DLanes JSON (camera frame), one per image')
+    parser.add_argument('--plots', type=Path, metavar='DIR',
+                        help='also draw each labelled image: lanes over the image and from above')
+    parser.add_argument('--points-topic', default='/points')
+    parser.add_argument('--odom-topic', default='/odom',
+                        help="odometry topic; '' or a topic absent from the bag: per sweep")
+    parser.add_argument('--overwrite', action='store_true',
+                        help='replace an existing OUT_BAG (only a bag folder) and the JSON files '
+                        'it would write in --once-json')
+    parser.add_argument('--quiet', action='store_true', help='no progress bar')
+
+
+def _calibration(args: argparse.Namespace, counts: dict[str, int], cloud_frame: str
+                 ) -> CameraCalibration:
+    if args.calib is not None:
+        return CameraCalibration.from_yaml(args.calib)
+    if CAMERA_INFO not in counts:
+        raise ConfigError(f'bag {args.in_bag} has no {CAMERA_INFO}; give the camera with '
+                          '--calib YAML')
+    info = next(msg for _, _, msg in read_messages(args.in_bag, [CAMERA_INFO]))
+    tf = [msg for _, _, msg in read_messages(args.in_bag, [TF_STATIC])] \
+        if TF_STATIC in counts else []
+    return CameraCalibration.from_messages(info, tf, cloud_frame)
+
+
+def _image_stamps(args: argparse.Namespace, counts: dict[str, int]) -> list[int]:
+    topic = next((t for t in (CAMERA_INFO, IMAGE, args.points_topic) if counts.get(t)), None)
+    return [stamp_to_ns(msg.header.stamp) for _, _, msg in read_messages(args.in_bag, [topic])]
+
+
+def _poses(args: argparse.Namespace, counts: dict[str, int], cloud_frame: str
+           ) -> PoseTrack | None:
+    if not args.odom_topic or not counts.get(args.odom_topic):
+        return None
+    stamps, poses, frame = [], [], None
+    for _, _, msg in read_messages(args.in_bag, [args.odom_topic]):
+        if msg.child_frame_id != cloud_frame:
+            raise ConfigError(f'{args.odom_topic} gives the pose of "{msg.child_frame_id}", '
+                              f'the clouds are in "{cloud_frame}": autolabel needs the LiDAR\'s '
+                              'own odometry')
+        try:
+            poses.append(odometry_to_matrix(msg))
+        except ValueError as exc:
+            raise ConfigError(f'{args.odom_topic}: {exc}') from exc
+        stamps.append(stamp_to_ns(msg.header.stamp))
+        frame = msg.header.frame_id
+    return PoseTrack(np.array(stamps, dtype=np.int64), np.stack(poses), str(frame))
+
+
+def _check(args: argparse.Namespace) -> dict[str, int]:
+    inputs = {'IN_BAG': args.in_bag, '--labels2d': args.labels2d}
+    check_output(args.out_bag, args.overwrite, inputs)
+    if args.once_json is not None and args.once_json.exists() and \
+            not args.once_json.is_dir():
+        raise ConfigError(f'--once-json {args.once_json}: exists and is not a directory')
+    counts = topic_counts(args.in_bag)
+    if not counts.get(args.points_topic):
+        raise ConfigError(f'bag {args.in_bag} has no messages on {args.points_topic} (it has: '
+                          f'{", ".join(sorted(counts)) or "nothing"})')
+    return counts
+
+
+def _once_json(calib: CameraCalibration, image: LabelledImage) -> dict:
+    """ONCE-3DLanes layout: lanes as [x, y, z] lists in the camera frame, K as a 3x4."""
+    T = np.linalg.inv(image.T_out_camera)
+    lanes = [np.round(lane @ T[:3, :3].T + T[:3, 3], 4).tolist() for lane in image.lanes]
+    K = np.hstack([calib.K, np.zeros((3, 1))])
+    return {'lanes': lanes, 'calibration': K.tolist(), 'stamp_ns': image.stamp_ns}
+
+
+def run(args: argparse.Namespace) -> int:
+    start = time.perf_counter()
+    counts = _check(args)
+    labels = read_label_dir(args.labels2d)
+    first_cloud = next(msg for _, _, msg in read_messages(args.in_bag, [args.points_topic]))
+    cloud_frame = str(first_cloud.header.frame_id)
+    calib = _calibration(args, counts, cloud_frame)
+    for stamp, image in labels.items():
+        if tuple(image.image_size) != (calib.width, calib.height):
+            raise ConfigError(f'--labels2d {stamp}.json is for a {image.image_size[0]}x'
+                              f'{image.image_size[1]} image, the camera is {calib.width}x'
+                              f'{calib.height}')
+    labeler = Autolabeler(calib, labels, _image_stamps(args, counts),
+                          _poses(args, counts, cloud_frame))
+    once_dir = args.once_json
+    for out_dir, suffix, option in ((once_dir, 'json', '--once-json'),
+                                    (args.plots, 'png', '--plots')):
+        if out_dir is None:
+            continue
+        if out_dir.exists() and not out_dir.is_dir():
+            raise ConfigError(f'{option} {out_dir}: exists and is not a directory')
+        if out_dir.is_dir():  # a new one cannot hold a conflict
+            for stamp in labels:
+                check_file_output(out_dir / f'{stamp}.{suffix}', args.overwrite,
+                                  {'IN_BAG': args.in_bag}, option)
+        out_dir.mkdir(parents=True, exist_ok=True)
+    images = {}  # rgb of labelled images waiting to be drawn
+    wanted = set(labeler.stamps) if args.plots is not None else set()
+    topics = [args.points_topic] + ([IMAGE] if wanted and counts.get(IMAGE) else [])
+    bar = tqdm(total=counts[args.points_topic], unit='sweep', desc='autolabel',
+               disable=args.quiet)
+    with BagWriter(args.out_bag, overwrite=args.overwrite) as bag:
+        fam = bag.family
+
+        def write(image: LabelledImage) -> None:
+            header = fam.header(image.stamp_ns, image.frame_id)
+            bag.write('/lanes', 'visualization_msgs/msg/MarkerArray', image.stamp_ns,
+                      lanes_to_marker_array(fam, header, image.lanes, np.ones(len(image.lanes)),
+                                            _unique(image.ids), image.outline))
+            if once_dir is not None:
+                (once_dir / f'{image.stamp_ns}.json').write_text(
+                    json.dumps(_once_json(calib, image)) + '\n')
+            if args.plots is not None:
+                _plot(args.plots / f'{image.stamp_ns}.png', calib, image,
+                      images.pop(image.stamp_ns, None))
+
+        for topic, _, msg in read_messages(args.in_bag, topics):
+            if topic == IMAGE:
+                if stamp_to_ns(msg.header.stamp) in wanted:
+                    images[stamp_to_ns(msg.header.stamp)] = msg_to_image(msg)
+                continue
+            try:
+                xyz, intensity = read_xyzi(msg)
+            except ValueError as exc:
+                raise ConfigError(f'{args.points_topic}: {exc}') from exc
+            for image in labeler.add_sweep(stamp_to_ns(msg.header.stamp),
+                                           str(msg.header.frame_id), xyz, intensity):
+                write(image)
+            bar.update()
+        for image in labeler.finish():
+            write(image)
+        bar.close()
+    c = labeler.counts
+    print(f'fhld autolabel: {c.images} images labelled in 3D, {c.lanes} lanes, '
+          f'{time.perf_counter() - start:.1f} s; skipped: {c.labels_without_image} label files '
+          f'without an image, {c.images_without_labels} images without labels, '
+          f'{c.images_without_points} images without LiDAR ground in view; '
+          f'{c.label_points_outside_image} label points outside the image dropped',
+          file=sys.stderr)
+    if c.images == 0:
+        raise ConfigError(f'no image could be labelled (label stamps: '
+                          f'{min(labels)}..{max(labels)}); see the counts above')
+    return 0
+
+
+def _plot(path: Path, calib: CameraCalibration, image: LabelledImage,
+          rgb: np.ndarray | None) -> None:
+    T = np.linalg.inv(image.T_out_camera)
+    to_camera = lambda xyz: xyz @ T[:3, :3].T + T[:3, 3]  # noqa: E731
+    title = (f'fhld autolabel: image at {image.stamp_ns / 1e9:.3f} s, '
+             f'{len(image.labels.lanes)} labels -> {len(image.lanes)} 3D lanes')
+    write_file_atomically(path, lambda tmp: draw_autolabel(
+        tmp, calib, image.labels, rgb, [to_camera(lane) for lane in image.lanes], image.ids,
+        to_camera(image.ground), image.ground_contrast, title))
+
+
+def _unique(ids: list[int]) -> list[int]:
+    """Marker ids: a label's id, and id + 1000 * k for its k-th further piece."""
+    seen: dict[int, int] = {}
+    out = []
+    for i in ids:
+        k = seen.get(i, 0)
+        seen[i] = k + 1
+        out.append(int(i) + 1000 * k)
+    return out

@@ -1,0 +1,156 @@
+"""Camera messages: sensor_msgs/Image <-> (H, W, 3) uint8, sensor_msgs/CameraInfo <-> pinhole
+intrinsics, and tf2_msgs/TFMessage <-> 4x4 transforms (any message family, rosbags or rclpy)."""
+from __future__ import annotations
+
+import array
+from typing import Any
+
+import numpy as np
+
+from msg_adapters.family import MessageFamily
+from msg_adapters.odometry import (
+    QUATERNION_NORM_TOLERANCE,
+    matrix_to_quaternion,
+    quaternion_to_matrix,
+)
+
+# encodings msg_to_image reads: channels and whether they are stored blue first
+_ENCODINGS = {'rgb8': (3, False), 'bgr8': (3, True), 'mono8': (1, False),
+              'rgba8': (4, False), 'bgra8': (4, True)}
+# models whose first five coefficients are plumb_bob's (rational_polynomial adds k4..k6)
+_PLUMB_BOB_LIKE = ('plumb_bob', 'rational_polynomial', '')
+
+
+def image_to_msg(family: MessageFamily, header: Any, rgb: np.ndarray) -> Any:
+    """(H, W, 3) uint8 RGB -> sensor_msgs/Image, encoding rgb8."""
+    rgb = np.ascontiguousarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise ValueError(f'image must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}')
+    height, width = rgb.shape[:2]
+    return family.new('sensor_msgs/msg/Image', header=header, height=height, width=width,
+                      encoding='rgb8', is_bigendian=0, step=3 * width,
+                      data=_data_field(family, rgb.reshape(-1)))
+
+
+def _data_field(family: MessageFamily, flat: np.ndarray) -> Any:
+    # rosbags wants a numpy array; rclpy's uint8[] setter takes array('B') without a copy per item
+    return flat if family.name == 'rosbags' else array.array('B', flat.tobytes())
+
+
+def msg_to_image(msg: Any) -> np.ndarray:
+    """sensor_msgs/Image (rgb8, bgr8, rgba8, bgra8 or mono8; rows may be padded) -> (H, W, 3)
+    uint8 RGB. ValueError for another encoding or a data size that does not match."""
+    encoding = str(msg.encoding).lower()
+    if encoding not in _ENCODINGS:
+        raise ValueError(f'image encoding {msg.encoding!r} is not supported (use '
+                         f'{", ".join(_ENCODINGS)})')
+    channels, blue_first = _ENCODINGS[encoding]
+    height, width, step = int(msg.height), int(msg.width), int(msg.step)
+    data = np.frombuffer(_as_bytes(msg.data), dtype=np.uint8)
+    if step < width * channels or data.size < step * height:
+        raise ValueError(f'image {width}x{height} {encoding}: step {step} and {data.size} '
+                         f'data bytes do not hold it')
+    rows = data[:step * height].reshape(height, step)[:, :width * channels]
+    pixels = rows.reshape(height, width, channels)
+    if channels == 1:
+        return np.repeat(pixels, 3, axis=2)
+    rgb = pixels[..., 2::-1] if blue_first else pixels[..., :3]
+    return np.ascontiguousarray(rgb)
+
+
+def _as_bytes(data: Any) -> Any:
+    if isinstance(data, np.ndarray):
+        return data.reshape(-1).view(np.uint8)
+    if isinstance(data, (bytes, bytearray, memoryview, array.array)):
+        return data
+    return bytes(data)  # a plain list of ints (some decoders)
+
+
+def camera_info_msg(family: MessageFamily, header: Any, width: int, height: int,
+                    K: np.ndarray, D: np.ndarray | None = None) -> Any:
+    """sensor_msgs/CameraInfo of a pinhole camera: plumb_bob d = [k1, k2, p1, p2, k3], k row-major,
+    p = [K | 0], r = identity (a monocular camera)."""
+    K = np.asarray(K, dtype=np.float64).reshape(3, 3)
+    d = np.zeros(5) if D is None else np.asarray(D, dtype=np.float64).ravel()
+    p = np.concatenate([K, np.zeros((3, 1))], axis=1)
+    return family.new('sensor_msgs/msg/CameraInfo', header=header, height=int(height),
+                      width=int(width), distortion_model='plumb_bob',
+                      d=_float_field(family, d), k=_float_field(family, K.ravel()),
+                      r=_float_field(family, np.eye(3).ravel()),
+                      p=_float_field(family, p.ravel()))
+
+
+def _float_field(family: MessageFamily, values: np.ndarray) -> Any:
+    return values.astype(np.float64) if family.name == 'rosbags' else \
+        [float(v) for v in values]
+
+
+def camera_info_values(msg: Any) -> tuple[int, int, np.ndarray, np.ndarray, str]:
+    """sensor_msgs/CameraInfo -> (width, height, K (3, 3), D (the message's d as given, e.g.
+    (5,) or empty), frame_id). ValueError for a distortion model that is not plumb_bob
+    (rational_polynomial is accepted when its k4..k6 are zero)."""
+    model = str(msg.distortion_model)
+    d = np.asarray(list(msg.d), dtype=np.float64)
+    if model not in _PLUMB_BOB_LIKE and np.any(d):
+        raise ValueError(f'camera_info distortion_model {model!r} is not supported '
+                         '(plumb_bob only)')
+    if model == 'rational_polynomial' and d.size > 5:
+        if np.any(d[5:]):
+            raise ValueError('camera_info distortion_model rational_polynomial has non-zero '
+                             'k4..k6 (plumb_bob only)')
+        d = d[:5]
+    K = np.asarray(list(msg.k), dtype=np.float64).reshape(3, 3)
+    return int(msg.width), int(msg.height), K, d, str(msg.header.frame_id)
+
+
+def transform_msg(family: MessageFamily, T: np.ndarray) -> Any:
+    """4x4 -> geometry_msgs/Transform."""
+    T = np.asarray(T, dtype=np.float64)
+    q = matrix_to_quaternion(T[:3, :3])
+    t = T[:3, 3]
+    return family.new(
+        'geometry_msgs/msg/Transform',
+        translation=family.new('geometry_msgs/msg/Vector3', x=float(t[0]), y=float(t[1]),
+                               z=float(t[2])),
+        rotation=family.new('geometry_msgs/msg/Quaternion', x=float(q[0]), y=float(q[1]),
+                            z=float(q[2]), w=float(q[3])))
+
+
+def transform_to_matrix(transform: Any) -> np.ndarray:
+    """geometry_msgs/Transform -> 4x4; ValueError for a non-finite translation or a rotation
+    that is not a finite unit quaternion."""
+    r, p = transform.rotation, transform.translation
+    q = np.array((r.x, r.y, r.z, r.w), dtype=np.float64)
+    t = np.array((p.x, p.y, p.z), dtype=np.float64)
+    if not np.isfinite(t).all() or not np.isfinite(q).all():
+        raise ValueError(f'transform ({tuple(t.tolist())}, {tuple(q.tolist())}) is not finite')
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+        raise ValueError(f'transform rotation (x, y, z, w) = {tuple(q.tolist())} has norm '
+                         f'{norm:.6g}, not 1')
+    out = np.eye(4)
+    out[:3, :3] = quaternion_to_matrix(q)
+    out[:3, 3] = t
+    return out
+
+
+def tf_message(family: MessageFamily, stamp_ns: int,
+               transforms: list[tuple[str, str, np.ndarray]]) -> Any:
+    """tf2_msgs/TFMessage of (parent, child, T_parent_child) transforms, all at stamp_ns: each
+    is the pose of child in parent (maps child-frame points into parent)."""
+    return family.new('tf2_msgs/msg/TFMessage', transforms=[
+        family.new('geometry_msgs/msg/TransformStamped', header=family.header(stamp_ns, parent),
+                   child_frame_id=child, transform=transform_msg(family, T))
+        for parent, child, T in transforms])
+
+
+def tf_static_msg(family: MessageFamily, stamp_ns: int, parent: str, child: str,
+                  T_parent_child: np.ndarray) -> Any:
+    """A /tf_static message holding one transform: the pose of `child` in `parent`."""
+    return tf_message(family, stamp_ns, [(parent, child, T_parent_child)])
+
+
+def tf_transforms(msg: Any) -> list[tuple[str, str, np.ndarray]]:
+    """tf2_msgs/TFMessage -> [(parent frame, child frame, T_parent_child 4x4)]."""
+    return [(str(ts.header.frame_id), str(ts.child_frame_id), transform_to_matrix(ts.transform))
+            for ts in msg.transforms]
