@@ -82,6 +82,18 @@ def lanes_to_marker_array(family: MessageFamily, header: Any, lanes: Sequence[np
     return family.new('visualization_msgs/msg/MarkerArray', markers=markers)
 
 
+def unique_marker_ids(ids: Sequence[int]) -> list[int]:
+    """Marker ids for lanes that may share a line id (pieces of one line): the line's id, and
+    id + 1000 * k for its k-th further piece."""
+    seen: dict[int, int] = {}
+    out = []
+    for i in ids:
+        k = seen.get(int(i), 0)
+        seen[int(i)] = k + 1
+        out.append(int(i) + 1000 * k)
+    return out
+
+
 def _confidence(marker: Any) -> float:
     text = str(marker.text)
     if text.startswith('conf='):

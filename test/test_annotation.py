@@ -112,8 +112,9 @@ def test_lane_region_width_follows_depth_and_recovery_finds_the_paint():
     right. The region holds the returns around it, and recovery centres on the paint."""
     cam = camera()
     rng = np.random.default_rng(1)
-    x = rng.uniform(4, 40, 60000)
-    y = rng.uniform(-0.2, 3.6, 60000)
+    radius, azimuth = np.meshgrid(np.arange(4.0, 40.0, 0.4), np.arange(-0.2, 0.8, 0.002))
+    x, y = (radius * np.cos(azimuth)).ravel(), (radius * np.sin(azimuth)).ravel()
+    x, y = x[(y > -0.2) & (y < 3.6)], y[(y > -0.2) & (y < 3.6)]  # one sweep's rings
     xyz = np.column_stack([x, y, np.full_like(x, -1.5)])
     paint = np.abs(y - 1.75) < 0.075
     contrast = np.where(paint, 6.0, 1.0) * rng.uniform(0.8, 1.2, x.size)
@@ -125,7 +126,7 @@ def test_lane_region_width_follows_depth_and_recovery_finds_the_paint():
     # near the camera the region is ~2 x 0.3 m wide on the road; far away it keeps >= 1.5 px
     near = got[got[:, 0] < 8]
     assert 0.4 < np.ptp(near[:, 1]) < 0.8
-    lanes = recover_lane(got, members.t, contrast[members.index])
+    lanes = recover_lane(got, members.t, contrast[members.index], np.zeros(len(got), int))
     assert len(lanes) == 1
     lane = lanes[0]
     assert lane[0, 0] < 6 and lane[-1, 0] > 35

@@ -18,16 +18,19 @@ import numpy as np
 from fhld_ros.annotation.calibration import CameraCalibration
 from fhld_ros.annotation.ground import below_sensor, segment_ground
 from fhld_ros.annotation.labels2d import ImageLabels
-from fhld_ros.annotation.lane_regions import lane_members
+from fhld_ros.annotation.lane_regions import LaneMembers, lane_members
 from fhld_ros.annotation.recovery import recover_lane
+from fhld_ros.evaluation.metrics import resample_polyline
 from fhld_ros.intensity import CONTRAST, GROUND_LEVEL, IntensityEncoder
 from msg_adapters.odometry import interpolate_pose
 
 PAST_S = 0.5
 FUTURE_S = 2.0
-MAX_RANGE_M = 60.0  # labels are lifted up to this depth; the output window reaches as far
+MAX_RANGE_M = 60.0  # labels are lifted up to this depth
+REACH_PERCENTILE = 99.0  # the output window reaches as far as this share of the ground in view
 SEED_AHEAD_M = 6.0  # ground grows from the road this far ahead of the camera
 MIN_LANE_M = 1.0  # shorter recovered pieces are dropped
+RAY_SPACING_PX = 2.0  # label points cast to fill the LiDAR's gaps along a line
 
 
 @dataclass
@@ -35,6 +38,7 @@ class Sweep:
     stamp_ns: int
     xyz: np.ndarray  # (N, 3) float64 coarse-ground returns in the drive frame (odom or cloud)
     contrast: np.ndarray  # (N,) intensity over the sweep's road level
+    index: int  # the sweep's number in the drive
 
 
 @dataclass
@@ -44,7 +48,7 @@ class LabelledImage:
     T_out_camera: np.ndarray  # (4, 4) camera pose in the output frame
     lanes: list[np.ndarray]  # (K, 3) in the output frame
     ids: list[int]
-    outline: np.ndarray  # (5, 3) the square the labels could reach, output frame
+    outline: np.ndarray  # (5, 3) the square ahead of the camera its ground returns reach
     labels: ImageLabels
     ground: np.ndarray  # (N, 3) ground returns the camera sees, output frame
     ground_contrast: np.ndarray  # (N,)
@@ -93,6 +97,7 @@ class Autolabeler:
         self.sweeps: collections.deque[Sweep] = collections.deque()
         self.encoder = IntensityEncoder(CONTRAST)
         self.cloud_frame: str | None = None
+        self.n_sweeps = 0
         matched = _match_stamps(labels, image_stamps)
         self.counts.images_without_labels = len(set(image_stamps) - set(matched.values()))
         self.counts.skipped_labels = sorted(set(labels) - set(matched))
@@ -113,7 +118,8 @@ class Autolabeler:
         pose = np.eye(4) if self.poses is None else self.poses.at(stamp_ns)
         if pose is not None:
             pts = xyz[keep].astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
-            self.sweeps.append(Sweep(stamp_ns, pts, contrast[keep]))
+            self.sweeps.append(Sweep(stamp_ns, pts, contrast[keep], self.n_sweeps))
+        self.n_sweeps += 1
         yield from self._ready(stamp_ns)
 
     def finish(self) -> Iterator[LabelledImage]:
@@ -142,10 +148,11 @@ class Autolabeler:
             use = [min(use, key=lambda s: abs(s.stamp_ns - image.stamp_ns))]
         xyz = np.concatenate([s.xyz for s in use])
         contrast = np.concatenate([s.contrast for s in use])
+        sweep = np.concatenate([np.full(s.xyz.shape[0], s.index) for s in use])
         T_out_camera = pose @ calib.camera_in_cloud
         forward = _horizontal(T_out_camera[:3, 2])
         ground = segment_ground(xyz, T_out_camera[:2, 3] + SEED_AHEAD_M * forward)
-        xyz, contrast = xyz[ground], contrast[ground]
+        xyz, contrast, sweep = xyz[ground], contrast[ground], sweep[ground]
         T_camera_out = np.linalg.inv(T_out_camera)
         cam = xyz @ T_camera_out[:3, :3].T + T_camera_out[:3, 3]
         uv, depth, inside = calib.project_camera(cam)
@@ -155,28 +162,51 @@ class Autolabeler:
             return None
         idx = np.flatnonzero(inside)
         uv, depth = uv[idx], depth[idx]
-        lanes, ids = [], []
+        # the window claims what the LiDAR covers: at the end of a drive no later sweep has
+        # reached the far road the camera sees, and nothing is lifted there
+        reach = float(np.percentile(depth, REACH_PERCENTILE))
+        regions, label_rays = [], []
         for label in image.lanes:
             in_image = (label.uv[:, 0] >= 0) & (label.uv[:, 0] <= calib.width) & \
                 (label.uv[:, 1] >= 0) & (label.uv[:, 1] <= calib.height)
             self.counts.label_points_outside_image += int((~in_image).sum())
-            if in_image.sum() < 2:
-                continue
-            members = lane_members(uv, depth, label.uv[in_image], float(calib.K[0, 0]))
-            if members.index.size == 0:
-                continue
-            rows = idx[members.index]
-            for piece in recover_lane(xyz[rows], members.t, contrast[rows]):
+            if in_image.sum() >= 2:
+                regions.append((label.id, lane_members(uv, depth, label.uv[in_image],
+                                                       float(calib.K[0, 0]))))
+                label_rays.append(calib.pixel_rays(resample_polyline(
+                    label.uv[in_image], RAY_SPACING_PX)) @ T_out_camera[:3, :3].T)
+        owner = _nearest_region([members for _, members in regions], uv.shape[0])
+        lanes, ids = [], []
+        for k, (label_id, members) in enumerate(regions):
+            own = owner[members.index] == k
+            rows = idx[members.index[own]]
+            rays = (T_out_camera[:3, 3], label_rays[k])
+            for piece in recover_lane(xyz[rows], members.t[own], contrast[rows], sweep[rows],
+                                      rays):
                 if np.linalg.norm(np.diff(piece[:, :2], axis=0), axis=1).sum() >= MIN_LANE_M:
                     lanes.append(piece)
-                    ids.append(label.id)
+                    ids.append(label_id)
         self.counts.images += 1
         self.counts.lanes += len(lanes)
         z = float(np.median(xyz[:, 2])) if xyz.size else float(T_out_camera[2, 3])
         frame = self.cloud_frame if self.poses is None else self.poses.frame_id
         return LabelledImage(image.stamp_ns, str(frame), T_out_camera, lanes, ids,
-                             window_outline(T_out_camera[:2, 3], forward, MAX_RANGE_M, z),
+                             window_outline(T_out_camera[:2, 3], forward, reach, z),
                              image, xyz[idx], contrast[idx])
+
+
+def _nearest_region(regions: list[LaneMembers], n: int) -> np.ndarray:
+    """(n,) index of the region each return belongs to (-1: none). Regions overlap where lines
+    run close (a double line's stripes ~0.3 m apart): a return goes to the nearest label, so
+    each stripe stays with its own line instead of pulling the other's centre towards it."""
+    best = np.full(n, np.inf)
+    owner = np.full(n, -1)
+    for k, members in enumerate(regions):
+        dist = np.abs(members.offset_px)
+        nearer = dist < best[members.index]
+        best[members.index[nearer]] = dist[nearer]
+        owner[members.index[nearer]] = k
+    return owner
 
 
 def window_outline(camera_xy: np.ndarray, forward: np.ndarray, reach_m: float,

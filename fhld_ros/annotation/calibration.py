@@ -17,6 +17,7 @@ from fhld_ros.errors import ConfigError
 from msg_adapters.camera import camera_info_values, tf_transforms
 
 MIN_DEPTH_M = 0.1  # points nearer the image plane than this are not projected
+UNDISTORT_STEPS = 10
 
 
 @dataclass(frozen=True)
@@ -63,6 +64,23 @@ class CameraCalibration:
         inside = ahead & (uv[:, 0] >= 0) & (uv[:, 0] < self.width) & (uv[:, 1] >= 0) & \
             (uv[:, 1] < self.height)
         return uv, depth, inside
+
+    def pixel_rays(self, uv: np.ndarray) -> np.ndarray:
+        """(N, 2) pixels -> (N, 3) unit directions in the camera optical frame (distortion
+        undone by fixed-point iteration, as OpenCV's undistortPoints does)."""
+        K = self.K
+        y = (uv[:, 1] - K[1, 2]) / K[1, 1]
+        x = (uv[:, 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
+        if np.any(self.D):
+            k1, k2, p1, p2, k3 = self.D
+            xd, yd = x, y
+            for _ in range(UNDISTORT_STEPS):
+                r2 = x * x + y * y
+                radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+                x = (xd - 2 * p1 * x * y - p2 * (r2 + 2 * x * x)) / radial
+                y = (yd - p1 * (r2 + 2 * y * y) - 2 * p2 * x * y) / radial
+        rays = np.column_stack([x, y, np.ones_like(x)])
+        return rays / np.linalg.norm(rays, axis=1, keepdims=True)
 
     @property
     def max_r2(self) -> float:

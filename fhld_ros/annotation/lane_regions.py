@@ -14,11 +14,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 HALF_WIDTH_M = 0.3
 MIN_HALF_PX = 1.5
 END_SLACK_PX = 2.0  # returns this far past a label's ends still count
-CHUNK = 1 << 22  # point x segment pairs evaluated at once (memory bound)
+SAMPLE_PX = 0.5  # the label is resampled this finely: distances are exact to a quarter pixel
 
 
 @dataclass
@@ -28,6 +29,18 @@ class LaneMembers:
     index: np.ndarray  # (M,) into the projected returns
     t: np.ndarray  # (M,) pixel arc length along the label of each return's foot point
     offset_px: np.ndarray  # (M,) signed distance from the label (left of its direction < 0)
+
+
+def _samples(poly: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points every SAMPLE_PX along the polyline, extended END_SLACK_PX past both ends, with
+    their arc length and the unit direction of their segment."""
+    seg = np.diff(poly, axis=0)
+    length = np.linalg.norm(seg, axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(length)])
+    t = np.arange(-END_SLACK_PX, arc[-1] + END_SLACK_PX + SAMPLE_PX / 2, SAMPLE_PX)
+    k = np.clip(np.searchsorted(arc, t, side='right') - 1, 0, len(seg) - 1)
+    unit = seg[k] / length[k, None]
+    return poly[k] + (t - arc[k])[:, None] * unit, np.clip(t, 0.0, arc[-1]), unit
 
 
 def lane_members(uv: np.ndarray, depth: np.ndarray, label_uv: np.ndarray, focal_px: float,
@@ -43,29 +56,13 @@ def lane_members(uv: np.ndarray, depth: np.ndarray, label_uv: np.ndarray, focal_
     reach = float(half.max()) + END_SLACK_PX  # before the slant: an upper bound
     lo, hi = poly.min(axis=0) - reach, poly.max(axis=0) + reach
     near = np.flatnonzero(np.all((uv >= lo) & (uv <= hi), axis=1))
-    a, b = poly[:-1], poly[1:]
-    seg = b - a
-    length = np.linalg.norm(seg, axis=1)
-    cos_slant = np.abs(seg[:, 1]) / length
-    start_t = np.concatenate([[0.0], np.cumsum(length)[:-1]])
-    best = np.full(near.size, np.inf)
-    best_cos = np.ones(near.size)
-    best_t = np.zeros(near.size)
-    best_off = np.zeros(near.size)
-    step = max(1, CHUNK // max(1, len(a)))
-    for s in range(0, near.size, step):  # chunks of points, every segment at once
-        p = uv[near[s:s + step]]
-        rel = p[:, None, :] - a[None]
-        along = np.einsum('psk,sk->ps', rel, seg) / length
-        clamped = np.clip(along, -END_SLACK_PX, length + END_SLACK_PX)
-        foot = a[None] + clamped[..., None] * (seg / length[:, None])[None]
-        dist = np.linalg.norm(p[:, None, :] - foot, axis=2)
-        k = np.argmin(dist, axis=1)
-        rows = np.arange(p.shape[0])
-        best[s:s + step] = dist[rows, k]
-        best_cos[s:s + step] = cos_slant[k]
-        best_t[s:s + step] = start_t[k] + clamped[rows, k]
-        cross = seg[k, 0] * rel[rows, k, 1] - seg[k, 1] * rel[rows, k, 0]
-        best_off[s:s + step] = np.sign(cross) * dist[rows, k]
-    inside = best <= np.maximum(MIN_HALF_PX, (half[near] * best_cos))
-    return LaneMembers(near[inside], best_t[inside], best_off[inside])
+    samples, t, unit = _samples(poly)
+    dist, nearest = cKDTree(samples).query(uv[near], distance_upper_bound=reach)
+    found = np.isfinite(dist)
+    near, dist, nearest = near[found], dist[found], nearest[found]
+    direction = unit[nearest]
+    rel = uv[near] - samples[nearest]
+    cross = direction[:, 0] * rel[:, 1] - direction[:, 1] * rel[:, 0]
+    cos_slant = np.abs(direction[:, 1])
+    inside = dist <= np.maximum(MIN_HALF_PX, half[near] * cos_slant)
+    return LaneMembers(near[inside], t[nearest[inside]], np.sign(cross[inside]) * dist[inside])

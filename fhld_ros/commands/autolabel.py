@@ -37,7 +37,7 @@ from fhld_ros.bagio import (
 from fhld_ros.errors import ConfigError
 from msg_adapters.camera import msg_to_image
 from msg_adapters.family import stamp_to_ns
-from msg_adapters.lanes import lanes_to_marker_array
+from msg_adapters.lanes import lanes_to_marker_array, unique_marker_ids
 from msg_adapters.odometry import odometry_to_matrix
 from msg_adapters.pointcloud2 import read_xyzi
 
@@ -159,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
             header = fam.header(image.stamp_ns, image.frame_id)
             bag.write('/lanes', 'visualization_msgs/msg/MarkerArray', image.stamp_ns,
                       lanes_to_marker_array(fam, header, image.lanes, np.ones(len(image.lanes)),
-                                            _unique(image.ids), image.outline))
+                                            unique_marker_ids(image.ids), image.outline))
             if once_dir is not None:
                 (once_dir / f'{image.stamp_ns}.json').write_text(
                     json.dumps(_once_json(calib, image)) + '\n')
@@ -205,14 +205,3 @@ def _plot(path: Path, calib: CameraCalibration, image: LabelledImage,
     write_file_atomically(path, lambda tmp: draw_autolabel(
         tmp, calib, image.labels, rgb, [to_camera(lane) for lane in image.lanes], image.ids,
         to_camera(image.ground), image.ground_contrast, title))
-
-
-def _unique(ids: list[int]) -> list[int]:
-    """Marker ids: a label's id, and id + 1000 * k for its k-th further piece."""
-    seen: dict[int, int] = {}
-    out = []
-    for i in ids:
-        k = seen.get(i, 0)
-        seen[i] = k + 1
-        out.append(int(i) + 1000 * k)
-    return out

@@ -56,8 +56,10 @@ Lanes = Sequence[np.ndarray]
 # --- geometry -----------------------------------------------------------------------------
 
 def resample_polyline(points: np.ndarray, step: float = SAMPLE_STEP) -> np.ndarray:
-    """Points at equal arc length along a polyline, spacing <= step, both ends kept."""
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    """Points at equal arc length along a polyline ((K, D), any D), spacing <= step, both ends
+    kept."""
+    pts = np.asarray(points, dtype=np.float64)
+    pts = pts.reshape(-1, pts.shape[-1])
     if len(pts) < 2:
         return pts.copy()
     seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
@@ -67,7 +69,7 @@ def resample_polyline(points: np.ndarray, step: float = SAMPLE_STEP) -> np.ndarr
         return pts.copy()
     arc = np.concatenate([[0.0], np.cumsum(seg)])
     t = np.linspace(0.0, arc[-1], int(np.ceil(arc[-1] / step)) + 1)
-    return np.stack([np.interp(t, arc, pts[:, k]) for k in range(3)], axis=1)
+    return np.stack([np.interp(t, arc, pts[:, k]) for k in range(pts.shape[1])], axis=1)
 
 
 def resample_lanes(lanes: Lanes, step: float = SAMPLE_STEP) -> np.ndarray:
