@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fhld_ros.annotation.calibration import CameraCalibration
-from fhld_ros.annotation.ground import below_sensor, segment_ground
+from fhld_ros.annotation.ground import GroundSurface, below_sensor, segment_ground
 from fhld_ros.annotation.labels2d import ImageLabels
 from fhld_ros.annotation.lane_regions import LaneMembers, lane_members
 from fhld_ros.annotation.recovery import recover_lane
@@ -31,6 +31,7 @@ REACH_PERCENTILE = 99.0  # the output window reaches as far as this share of the
 SEED_AHEAD_M = 6.0  # ground grows from the road this far ahead of the camera
 MIN_LANE_M = 1.0  # shorter recovered pieces are dropped
 RAY_SPACING_PX = 2.0  # label points cast to fill the LiDAR's gaps along a line
+SURFACE_SUPPORT_M = 3.0  # a ray's ground hit counts with a ground return this close to it
 
 
 @dataclass
@@ -176,13 +177,16 @@ class Autolabeler:
                 label_rays.append(calib.pixel_rays(resample_polyline(
                     label.uv[in_image], RAY_SPACING_PX)) @ T_out_camera[:3, :3].T)
         owner = _nearest_region([members for _, members in regions], uv.shape[0])
+        surface = GroundSurface(xyz)
         lanes, ids = [], []
         for k, (label_id, members) in enumerate(regions):
             own = owner[members.index] == k
             rows = idx[members.index[own]]
             rays = (T_out_camera[:3, 3], label_rays[k])
+            hits, support = surface.cast(*rays)
+            hits = hits[support <= SURFACE_SUPPORT_M]
             for piece in recover_lane(xyz[rows], members.t[own], contrast[rows], sweep[rows],
-                                      rays):
+                                      rays, hits):
                 if np.linalg.norm(np.diff(piece[:, :2], axis=0), axis=1).sum() >= MIN_LANE_M:
                     lanes.append(piece)
                     ids.append(label_id)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
 CELL_M = 1.0
 BAND_M = 0.12  # paint and asphalt texture stay inside; a bumper 0.3 m up does not
@@ -19,6 +20,9 @@ STEP_M = 0.2  # height change between neighbouring ground cells (kerbs ~0.15 m)
 MIN_BELOW_SENSOR_M = 0.5  # coarse: ground lies at least this far below the sensor
 MAX_BELOW_SENSOR_M = 5.0  # ... and not deeper (multipath, reflections in puddles)
 MIN_CELL_POINTS = 2
+PLANE_POINTS = 16  # the surface at a point: a plane through this many nearest ground returns
+RAY_NEAR_M, RAY_FAR_M = 0.5, 100.0  # a ray meets the surface within these distances ...
+RAY_STEPS = 30  # ... found by this many bisection steps
 
 
 def below_sensor(xyz_sensor: np.ndarray) -> np.ndarray:
@@ -66,3 +70,44 @@ def segment_ground(xyz: np.ndarray, seed_xy: np.ndarray) -> np.ndarray:
     ground_cell = component == component[seed]
     mask = ground_cell[cell] & (xyz[:, 2] - lowest[cell] < BAND_M)
     return mask
+
+
+class GroundSurface:
+    """The ground between returns: at (x, y) the plane through the PLANE_POINTS nearest ground
+    returns (it follows crossfall and grade), and how far the nearest of them lies."""
+
+    def __init__(self, ground_xyz: np.ndarray) -> None:
+        self.xyz = np.asarray(ground_xyz, dtype=np.float64)
+        self.tree = cKDTree(self.xyz[:, :2])
+
+    def height(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N,) surface heights and (N,) distances to the nearest ground return."""
+        k = min(PLANE_POINTS, self.xyz.shape[0])
+        dist, index = self.tree.query(xy, k=k)
+        dist, index = dist.reshape(len(xy), k), index.reshape(len(xy), k)
+        near = self.xyz[index]  # (N, k, 3)
+        a = np.concatenate([np.ones((*index.shape, 1)), near[..., :2] - xy[:, None, :]], axis=2)
+        ata = np.einsum('nki,nkj->nij', a, a) + 1e-6 * np.eye(3)
+        atz = np.einsum('nki,nk->ni', a, near[..., 2])
+        return np.linalg.solve(ata, atz[..., None])[:, 0, 0], dist[:, 0]
+
+    def cast(self, origin: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where rays from origin first go below the surface: (M, 3) points and (M,) the
+        distance of the nearest ground return to each (inf: the ray never meets it)."""
+        def below(t: np.ndarray, d: np.ndarray) -> np.ndarray:
+            p = origin + t[:, None] * d
+            return p[:, 2] < self.height(p[:, :2])[0]
+
+        lo, hi = np.full(len(dirs), RAY_NEAR_M), np.full(len(dirs), RAY_FAR_M)
+        ok = below(hi, dirs) & ~below(lo, dirs)
+        lo, hi, d = lo[ok], hi[ok], dirs[ok]
+        for _ in range(RAY_STEPS):
+            mid = (lo + hi) / 2
+            under = below(mid, d)
+            hi, lo = np.where(under, mid, hi), np.where(under, lo, mid)
+        hits = np.full((len(dirs), 3), np.nan)
+        support = np.full(len(dirs), np.inf)
+        hits[ok] = origin + ((lo + hi) / 2)[:, None] * d
+        if ok.any():
+            support[ok] = self.height(hits[ok, :2])[1]
+        return hits, support

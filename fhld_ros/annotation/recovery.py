@@ -60,7 +60,8 @@ def crossing_centres(xyz: np.ndarray, s: np.ndarray, sweep: np.ndarray, contrast
 
 
 def recover_lane(xyz: np.ndarray, t: np.ndarray, contrast: np.ndarray, sweep: np.ndarray,
-                 rays: tuple[np.ndarray, np.ndarray] | None = None, step_m: float = 0.5
+                 rays: tuple[np.ndarray, np.ndarray] | None = None,
+                 ground_hits: np.ndarray | None = None, step_m: float = 0.5
                  ) -> list[np.ndarray]:
     """(K, 3) lane pieces from the returns of one label region (xyz in a z-up frame, t their
     position along the label, contrast their intensity over the road's, sweep their sweep).
@@ -68,7 +69,11 @@ def recover_lane(xyz: np.ndarray, t: np.ndarray, contrast: np.ndarray, sweep: np
     rays (origin (3,), unit directions (M, 3) of points along the label, same frame) fill the
     gaps between crossings longer than FILL_GAP_M (a sparse sensor's far rings): each ray meets
     the lane's height profile interpolated between the crossings around it, so the image gives
-    the shape where the LiDAR has none, and nothing is extrapolated past the last crossing."""
+    the shape where the LiDAR has none.
+
+    ground_hits ((M, 3) where the same rays meet the ground surface of all ground returns,
+    ground.GroundSurface; only those with returns near them) extend the lane past its first
+    and last crossing, e.g. where a truck shades the line from the LiDAR but not the camera."""
     if xyz.shape[0] < 4:
         return []
     chord = _chord(xyz, t)
@@ -87,6 +92,12 @@ def recover_lane(xyz: np.ndarray, t: np.ndarray, contrast: np.ndarray, sweep: np
         return []
     if rays is not None:
         points = _fill_gaps(points, chord, *rays)
+    if ground_hits is not None and len(ground_hits):
+        along = points[:, :2] @ chord
+        s_hit = ground_hits[:, :2] @ chord
+        beyond = (s_hit < along[0] - BIN_M) | (s_hit > along[-1] + BIN_M)
+        points = np.vstack([points, ground_hits[beyond]])
+        points = points[np.argsort(points[:, :2] @ chord, kind='stable')]
     along = points[:, :2] @ chord
     pieces = []
     for part in np.split(np.arange(along.size), np.flatnonzero(np.diff(along) > MAX_GAP_M) + 1):
