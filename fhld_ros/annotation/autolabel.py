@@ -14,6 +14,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.ndimage import uniform_filter1d
 
 from fhld_ros.annotation.calibration import CameraCalibration
 from fhld_ros.annotation.ground import GroundSurface, below_sensor, segment_ground
@@ -30,7 +31,9 @@ MAX_RANGE_M = 60.0  # labels are lifted up to this depth
 REACH_PERCENTILE = 99.0  # the output window reaches as far as this share of the ground in view
 SEED_AHEAD_M = 6.0  # ground grows from the road this far ahead of the camera
 MIN_LANE_M = 1.0  # shorter recovered pieces are dropped
-RAY_SPACING_PX = 2.0  # label points cast to fill the LiDAR's gaps along a line
+LABEL_STEP_PX = 2.0  # labels are resampled this finely (regions, and rays cast from them) ...
+LABEL_SMOOTH_SAMPLES = 9  # ... and averaged over this many samples: far away a pixel of
+# labelling error is decimetres on the road, and a region a few pixels wide misses the paint
 SURFACE_SUPPORT_M = 3.0  # a ray's ground hit counts with a ground return this close to it
 
 
@@ -172,10 +175,10 @@ class Autolabeler:
                 (label.uv[:, 1] >= 0) & (label.uv[:, 1] <= calib.height)
             self.counts.label_points_outside_image += int((~in_image).sum())
             if in_image.sum() >= 2:
-                regions.append((label.id, lane_members(uv, depth, label.uv[in_image],
-                                                       float(calib.K[0, 0]))))
-                label_rays.append(calib.pixel_rays(resample_polyline(
-                    label.uv[in_image], RAY_SPACING_PX)) @ T_out_camera[:3, :3].T)
+                line = uniform_filter1d(resample_polyline(label.uv[in_image], LABEL_STEP_PX),
+                                        LABEL_SMOOTH_SAMPLES, axis=0, mode='nearest')
+                regions.append((label.id, lane_members(uv, depth, line, float(calib.K[0, 0]))))
+                label_rays.append(calib.pixel_rays(line) @ T_out_camera[:3, :3].T)
         owner = _nearest_region([members for _, members in regions], uv.shape[0])
         surface = GroundSurface(xyz)
         lanes, ids = [], []

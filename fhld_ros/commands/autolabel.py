@@ -133,8 +133,12 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError(f'--labels2d {stamp}.json is for a {image.image_size[0]}x'
                               f'{image.image_size[1]} image, the camera is {calib.width}x'
                               f'{calib.height}')
-    labeler = Autolabeler(calib, labels, _image_stamps(args, counts),
-                          _poses(args, counts, cloud_frame))
+    image_stamps = _image_stamps(args, counts)
+    labeler = Autolabeler(calib, labels, image_stamps, _poses(args, counts, cloud_frame))
+    if not labeler.stamps:
+        raise ConfigError(f'no label file names an image of {args.in_bag}: label stamps '
+                          f'{min(labels)}..{max(labels)} ns, images {min(image_stamps)}..'
+                          f'{max(image_stamps)} ns')
     once_dir = args.once_json
     for out_dir, suffix, option in ((once_dir, 'json', '--once-json'),
                                     (args.plots, 'png', '--plots')):
@@ -146,7 +150,6 @@ def run(args: argparse.Namespace) -> int:
             for stamp in labels:
                 check_file_output(out_dir / f'{stamp}.{suffix}', args.overwrite,
                                   {'IN_BAG': args.in_bag}, option)
-        out_dir.mkdir(parents=True, exist_ok=True)
     images = {}  # rgb of labelled images waiting to be drawn
     wanted = set(labeler.stamps) if args.plots is not None else set()
     topics = [args.points_topic] + ([IMAGE] if wanted and counts.get(IMAGE) else [])
@@ -160,10 +163,12 @@ def run(args: argparse.Namespace) -> int:
             bag.write('/lanes', 'visualization_msgs/msg/MarkerArray', image.stamp_ns,
                       lanes_to_marker_array(fam, header, image.lanes, np.ones(len(image.lanes)),
                                             unique_marker_ids(image.ids), image.outline))
-            if once_dir is not None:
+            if once_dir is not None:  # made with the first file: a failed run leaves none
+                once_dir.mkdir(parents=True, exist_ok=True)
                 (once_dir / f'{image.stamp_ns}.json').write_text(
                     json.dumps(_once_json(calib, image)) + '\n')
             if args.plots is not None:
+                args.plots.mkdir(parents=True, exist_ok=True)
                 _plot(args.plots / f'{image.stamp_ns}.png', calib, image,
                       images.pop(image.stamp_ns, None))
 
@@ -183,16 +188,15 @@ def run(args: argparse.Namespace) -> int:
         for image in labeler.finish():
             write(image)
         bar.close()
-    c = labeler.counts
+        c = labeler.counts
+        skipped = (f'skipped: {c.labels_without_image} label files without an image, '
+                   f'{c.images_without_labels} images without labels, '
+                   f'{c.images_without_points} images without LiDAR ground in view; '
+                   f'{c.label_points_outside_image} label points outside the image dropped')
+        if c.images == 0:  # inside the writer: the bag is not kept
+            raise ConfigError(f'no image could be labelled in 3D ({skipped})')
     print(f'fhld autolabel: {c.images} images labelled in 3D, {c.lanes} lanes, '
-          f'{time.perf_counter() - start:.1f} s; skipped: {c.labels_without_image} label files '
-          f'without an image, {c.images_without_labels} images without labels, '
-          f'{c.images_without_points} images without LiDAR ground in view; '
-          f'{c.label_points_outside_image} label points outside the image dropped',
-          file=sys.stderr)
-    if c.images == 0:
-        raise ConfigError(f'no image could be labelled (label stamps: '
-                          f'{min(labels)}..{max(labels)}); see the counts above')
+          f'{time.perf_counter() - start:.1f} s; {skipped}', file=sys.stderr)
     return 0
 
 
