@@ -8,11 +8,7 @@ from typing import Any
 import numpy as np
 
 from msg_adapters.family import MessageFamily
-from msg_adapters.odometry import (
-    QUATERNION_NORM_TOLERANCE,
-    matrix_to_quaternion,
-    quaternion_to_matrix,
-)
+from msg_adapters.odometry import rigid_matrix, rigid_message
 
 # encodings msg_to_image reads: channels and whether they are stored blue first
 _ENCODINGS = {'rgb8': (3, False), 'bgr8': (3, True), 'mono8': (1, False),
@@ -105,33 +101,15 @@ def camera_info_values(msg: Any) -> tuple[int, int, np.ndarray, np.ndarray, str]
 
 def transform_msg(family: MessageFamily, T: np.ndarray) -> Any:
     """4x4 -> geometry_msgs/Transform."""
-    T = np.asarray(T, dtype=np.float64)
-    q = matrix_to_quaternion(T[:3, :3])
-    t = T[:3, 3]
-    return family.new(
-        'geometry_msgs/msg/Transform',
-        translation=family.new('geometry_msgs/msg/Vector3', x=float(t[0]), y=float(t[1]),
-                               z=float(t[2])),
-        rotation=family.new('geometry_msgs/msg/Quaternion', x=float(q[0]), y=float(q[1]),
-                            z=float(q[2]), w=float(q[3])))
+    return rigid_message(family, T, 'geometry_msgs/msg/Transform', ('translation', 'rotation'),
+                         'geometry_msgs/msg/Vector3')
 
 
 def transform_to_matrix(transform: Any) -> np.ndarray:
     """geometry_msgs/Transform -> 4x4; ValueError for a non-finite translation or a rotation
     that is not a finite unit quaternion."""
-    r, p = transform.rotation, transform.translation
-    q = np.array((r.x, r.y, r.z, r.w), dtype=np.float64)
-    t = np.array((p.x, p.y, p.z), dtype=np.float64)
-    if not np.isfinite(t).all() or not np.isfinite(q).all():
-        raise ValueError(f'transform ({tuple(t.tolist())}, {tuple(q.tolist())}) is not finite')
-    norm = float(np.linalg.norm(q))
-    if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
-        raise ValueError(f'transform rotation (x, y, z, w) = {tuple(q.tolist())} has norm '
-                         f'{norm:.6g}, not 1')
-    out = np.eye(4)
-    out[:3, :3] = quaternion_to_matrix(q)
-    out[:3, 3] = t
-    return out
+    return rigid_matrix(transform.translation, transform.rotation,
+                        ('transform translation', 'transform rotation'))
 
 
 def tf_message(family: MessageFamily, stamp_ns: int,

@@ -58,27 +58,32 @@ def euler_to_matrix(x: float, y: float, z: float, roll: float, pitch: float,
     return transform
 
 
-def pose_to_matrix(pose: Any) -> np.ndarray:
-    """geometry_msgs/Pose (any family) -> 4x4.
+def rigid_matrix(position: Any, orientation: Any, what: tuple[str, str]) -> np.ndarray:
+    """A message's point/vector (x, y, z) and quaternion (x, y, z, w) -> 4x4.
 
-    ValueError for a non-finite position or a quaternion that is not finite or not of unit
-    norm (within QUATERNION_NORM_TOLERANCE).
+    ValueError, naming them by `what` (e.g. ('pose position', 'pose orientation')), for a
+    non-finite position or a quaternion that is not finite or not of unit norm (within
+    QUATERNION_NORM_TOLERANCE).
     """
-    o, p = pose.orientation, pose.position
-    q = np.array((o.x, o.y, o.z, o.w), dtype=np.float64)
-    t = np.array((p.x, p.y, p.z), dtype=np.float64)
+    q = np.array((orientation.x, orientation.y, orientation.z, orientation.w), dtype=np.float64)
+    t = np.array((position.x, position.y, position.z), dtype=np.float64)
     if not np.isfinite(t).all():
-        raise ValueError(f'pose position (x, y, z) = {tuple(t.tolist())} is not finite')
+        raise ValueError(f'{what[0]} (x, y, z) = {tuple(t.tolist())} is not finite')
     if not np.isfinite(q).all():
-        raise ValueError(f'pose orientation (x, y, z, w) = {tuple(q.tolist())} is not finite')
+        raise ValueError(f'{what[1]} (x, y, z, w) = {tuple(q.tolist())} is not finite')
     norm = float(np.linalg.norm(q))
     if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
-        raise ValueError(f'pose orientation (x, y, z, w) = {tuple(q.tolist())} has norm '
+        raise ValueError(f'{what[1]} (x, y, z, w) = {tuple(q.tolist())} has norm '
                          f'{norm:.6g}, not 1 (tolerance {QUATERNION_NORM_TOLERANCE:g})')
     transform = np.eye(4)
     transform[:3, :3] = quaternion_to_matrix(q)
     transform[:3, 3] = t
     return transform
+
+
+def pose_to_matrix(pose: Any) -> np.ndarray:
+    """geometry_msgs/Pose (any family) -> 4x4; ValueError as rigid_matrix."""
+    return rigid_matrix(pose.position, pose.orientation, ('pose position', 'pose orientation'))
 
 
 def odometry_to_matrix(odom: Any) -> np.ndarray:
@@ -87,15 +92,22 @@ def odometry_to_matrix(odom: Any) -> np.ndarray:
     return pose_to_matrix(odom.pose.pose)
 
 
-def matrix_to_pose(family: MessageFamily, transform: np.ndarray) -> Any:
+def rigid_message(family: MessageFamily, transform: np.ndarray, msgtype: str,
+                  fields: tuple[str, str], vector_type: str) -> Any:
+    """4x4 -> a message of a vector and a quaternion (Pose: position/orientation as a Point;
+    Transform: translation/rotation as a Vector3)."""
+    transform = np.asarray(transform, dtype=np.float64)
     q = matrix_to_quaternion(transform[:3, :3])
     t = transform[:3, 3]
-    return family.new(
-        'geometry_msgs/msg/Pose',
-        position=family.new('geometry_msgs/msg/Point', x=float(t[0]), y=float(t[1]),
-                            z=float(t[2])),
-        orientation=family.new('geometry_msgs/msg/Quaternion', x=float(q[0]), y=float(q[1]),
-                               z=float(q[2]), w=float(q[3])))
+    return family.new(msgtype, **{
+        fields[0]: family.new(vector_type, x=float(t[0]), y=float(t[1]), z=float(t[2])),
+        fields[1]: family.new('geometry_msgs/msg/Quaternion', x=float(q[0]), y=float(q[1]),
+                              z=float(q[2]), w=float(q[3]))})
+
+
+def matrix_to_pose(family: MessageFamily, transform: np.ndarray) -> Any:
+    return rigid_message(family, transform, 'geometry_msgs/msg/Pose',
+                         ('position', 'orientation'), 'geometry_msgs/msg/Point')
 
 
 def make_odometry(family: MessageFamily, header: Any, child_frame_id: str, transform: np.ndarray,
