@@ -35,6 +35,7 @@ LABEL_STEP_PX = 2.0  # labels are resampled this finely (regions, and rays cast 
 LABEL_SMOOTH_SAMPLES = 9  # ... and averaged over this many samples: far away a pixel of
 # labelling error is decimetres on the road, and a region a few pixels wide misses the paint
 SURFACE_SUPPORT_M = 3.0  # a ray's ground hit counts with a ground return this close to it
+SURFACE_POINTS = 100_000  # the ground surface is fitted to about this many returns at most
 
 
 @dataclass
@@ -180,7 +181,7 @@ class Autolabeler:
                 regions.append((label.id, lane_members(uv, depth, line, float(calib.K[0, 0]))))
                 label_rays.append(calib.pixel_rays(line) @ T_out_camera[:3, :3].T)
         owner = _nearest_region([members for _, members in regions], uv.shape[0])
-        surface = GroundSurface(xyz)
+        surface = GroundSurface(xyz[::max(1, xyz.shape[0] // SURFACE_POINTS)])
         lanes, ids = [], []
         for k, (label_id, members) in enumerate(regions):
             own = owner[members.index] == k
