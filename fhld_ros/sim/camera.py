@@ -24,13 +24,12 @@ from fhld_ros.sim.obstacles import (
     BUILDING,
     VEGETATION,
     VEHICLE,
-    Boxes,
-    Cylinders,
     Spheres,
 )
+from fhld_ros.sim.pinhole_caster import PinholeCaster
 from fhld_ros.sim.raycast import ObstacleCaster, RayBundle, cast_ground
 from fhld_ros.sim.scene import ASPHALT, CONCRETE, GRASS, GRAVEL, GroundGrid
-from fhld_ros.sim.simulator import PERIOD_S, STAMP_BASE_NS, Simulator
+from fhld_ros.sim.simulator import PERIOD_S, STAMP_BASE_NS, Simulator, subset
 
 CAMERA_FRAME = 'camera'
 DEFAULT_SIZE = (960, 600)  # width, height (px)
@@ -41,7 +40,6 @@ PITCH_DEG = 3.0  # optical axis below the LiDAR's horizontal
 RENDER_RANGE_M = 150.0  # ground and obstacles beyond fade into the haze
 HAZE_M = 400.0  # distance of 1/e haze transmission
 PAINT_AA_M = 25.0  # beyond this range paint is averaged over the pixel's footprint
-ANGLE_MARGIN = 0.02  # rad: the caster's pixel blocks grow by this (cylinder spans estimate)
 
 SUN = np.array([0.45, -0.35, 0.82]) / np.linalg.norm([0.45, -0.35, 0.82])  # world, unit
 AMBIENT, SUN_GAIN = 0.55, 0.65
@@ -105,76 +103,6 @@ class CameraImage:
     rgb: np.ndarray  # (H, W, 3) uint8
     depth: np.ndarray  # (H, W) float32 camera z (m)
     camera_to_odom: np.ndarray  # (4, 4)
-
-
-class _PinholeCaster(ObstacleCaster):
-    """ObstacleCaster for an image: blocks of rows x columns from each row's elevation range
-    and each column's azimuth range (world frame, exact per pixel, made monotonic), instead of
-    a spinning sensor's beams and evenly spaced columns. cull=False tests every pixel."""
-
-    def __init__(self, rays: RayBundle, elevation: np.ndarray, azimuth: np.ndarray,
-                 cull: bool = True) -> None:
-        """elevation: (H, any) samples along each row; azimuth: (any, W) down each column."""
-        super().__init__(rays, tilt_margin=ANGLE_MARGIN, yaw_margin=ANGLE_MARGIN)
-        self.cull = cull
-        # -elevation grows down the image and -azimuth to the right: ascending bounds for
-        # searchsorted (a running max of the upper and a reverse running min of the lower
-        # bounds only ever widen the blocks)
-        nel, naz = -elevation, -azimuth
-        self._row_hi = np.maximum.accumulate(nel.max(axis=1))
-        self._row_lo = np.minimum.accumulate(nel.min(axis=1)[::-1])[::-1]
-        self._col_hi = np.maximum.accumulate(naz.max(axis=0))
-        self._col_lo = np.minimum.accumulate(naz.min(axis=0)[::-1])[::-1]
-
-    def _spans(self, az: np.ndarray, half_az: np.ndarray, el_lo: np.ndarray, el_hi: np.ndarray,
-               skip: np.ndarray) -> list[tuple[int, slice, slice]]:
-        nb, nw = self.t.shape
-        if not self.cull:
-            return [(int(i), slice(0, nb), slice(0, nw)) for i in np.flatnonzero(~skip)]
-        r0 = np.searchsorted(self._row_hi, -el_hi - self.tilt)
-        r1 = np.searchsorted(self._row_lo, -el_lo + self.tilt, side='right')
-        a = (az + np.pi) % (2 * np.pi) - np.pi
-        half = half_az + self.yaw_margin
-        # the object's azimuth interval may wrap: try it shifted by -2pi, 0, 2pi
-        shifts = np.array([-2 * np.pi, 0.0, 2 * np.pi])
-        lo = (-a - half)[:, None] + shifts
-        hi = (-a + half)[:, None] + shifts
-        c0 = np.searchsorted(self._col_hi, lo)
-        c1 = np.searchsorted(self._col_lo, hi, side='right')
-        hit = c1 > c0
-        c0 = np.where(hit, c0, nw).min(axis=1)
-        c1 = np.where(hit, c1, 0).max(axis=1)
-        full = half_az >= np.pi
-        c0, c1 = np.where(full, 0, c0), np.where(full, nw, c1)
-        keep = np.flatnonzero((r1 > r0) & (c1 > c0) & ~skip)
-        return [(int(i), slice(int(r0[i]), int(r1[i])), slice(int(c0[i]), int(c1[i])))
-                for i in keep]
-
-    def _box_spans(self, boxes: Boxes) -> list[tuple[int, slice, slice]]:
-        """Exact angular extents of upright boxes: azimuth from the footprint corners,
-        elevation from the top and bottom faces at the nearest / farthest footprint point."""
-        c, s = boxes.rot[:, 0, 0], boxes.rot[:, 1, 0]
-        hx, hy, hz = boxes.half.T
-        rx, ry = self.sensor[0] - boxes.centre[:, 0], self.sensor[1] - boxes.centre[:, 1]
-        lx, ly = rx * c + ry * s, ry * c - rx * s  # the camera in box axes
-        d_min = np.hypot(lx - np.clip(lx, -hx, hx), ly - np.clip(ly, -hy, hy))
-        sx = np.array([-1.0, -1.0, 1.0, 1.0])[None]
-        sy = np.array([-1.0, 1.0, -1.0, 1.0])[None]
-        px = (sx * hx[:, None]) * c[:, None] - (sy * hy[:, None]) * s[:, None] - rx[:, None]
-        py = (sx * hx[:, None]) * s[:, None] + (sy * hy[:, None]) * c[:, None] - ry[:, None]
-        d_max = np.hypot(px, py).max(axis=1)
-        az = np.arctan2(py, px)
-        daz = (az - az[:, :1] + np.pi) % (2 * np.pi) - np.pi
-        span = daz.max(1) - daz.min(1)
-        top = boxes.centre[:, 2] + hz - self.sensor[2]
-        bottom = boxes.centre[:, 2] - hz - self.sensor[2]
-        el_hi = np.arctan2(top, np.where(top > 0, d_min, d_max))
-        el_lo = np.arctan2(bottom, np.where(bottom < 0, d_min, d_max))
-        around = (span > np.pi) | (d_min < 0.5)
-        mid = az[:, 0] + 0.5 * (daz.max(1) + daz.min(1)) - self.rays.yaw
-        return self._spans(mid, np.where(around, np.pi, 0.5 * span),
-                           np.where(around, -np.pi / 2, el_lo), np.where(around, np.pi / 2, el_hi),
-                           d_min > self.rays.t_max)
 
 
 class SimCamera:
@@ -251,7 +179,7 @@ class SimCamera:
         each object id the caster recorded. cull=False: every pixel against every object."""
         scene = self.sim.scene
         # elevation along rows and azimuth along columns vary smoothly: every 4th pixel (and
-        # the last) is enough for the culling bounds, ANGLE_MARGIN covers the rest
+        # the last) is enough for the culling bounds, pinhole_caster.ANGLE_MARGIN covers the rest
         cols = np.unique(np.append(np.arange(0, self.width, 4), self.width - 1))
         rows = np.unique(np.append(np.arange(0, self.height, 4), self.height - 1))
         el = np.arcsin(np.clip(dirs[:, cols, 2], -1.0, 1.0))
@@ -261,18 +189,18 @@ class SimCamera:
         az = (np.arctan2(sub[..., 1], sub[..., 0]) - yaw + np.pi) % (2 * np.pi) - np.pi
         rays = RayBundle(np.broadcast_to(origin, (self.width, 3)), dirs, el[:, 0], az[0], yaw,
                          RENDER_RANGE_M)
-        caster = _PinholeCaster(rays, el, az, cull)
+        caster = PinholeCaster(rays, el, az, cull)
         reach = RENDER_RANGE_M + 20.0
         xy = origin[:2]
         near = lambda c: np.hypot(*(c[:, :2] - xy).T) < reach  # noqa: E731
         st = scene.static
-        caster.boxes(_keep(st.boxes, near(st.boxes.centre)))
+        caster.boxes(subset(st.boxes, near(st.boxes.centre)))
         caster.boxes(scene.traffic.boxes(scene.ref, scene.surface, k * PERIOD_S, xy, reach))
         n_boxes = len(caster.material)
-        caster.cylinders(_keep(st.cylinders, near(st.cylinders.base)))
+        caster.cylinders(subset(st.cylinders, near(st.cylinders.base)))
         n_cylinders = len(caster.material)
         # crowns: denser than the LiDAR's porosity, gaps in small blocks of pixels (leaves)
-        crowns = _keep(st.spheres, near(st.spheres.centre))
+        crowns = subset(st.spheres, near(st.spheres.centre))
         crowns = Spheres(crowns.centre, crowns.radius, crowns.material, crowns.rho,
                          0.25 * crowns.porosity)
         rng = np.random.default_rng(np.random.SeedSequence(self.sim.seed, spawn_key=(2000, k)))
@@ -402,11 +330,6 @@ class SimCamera:
         up = np.clip(dirs[sky, 2] / 0.45, 0.0, 1.0) ** 0.6
         rgb[sky] = np.round(255 * (SKY_HORIZON + (SKY_ZENITH - SKY_HORIZON) * up[:, None]))
         return rgb.reshape(self.height, self.width, 3)
-
-
-def _keep(prims: Boxes | Cylinders | Spheres, mask: np.ndarray):
-    """The primitives where mask is true (same type)."""
-    return type(prims)(*(getattr(prims, f)[mask] for f in prims.__dataclass_fields__))
 
 
 def _fill_curb_gaps(ground: np.ndarray, obj: np.ndarray, dirs: np.ndarray,

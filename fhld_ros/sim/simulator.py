@@ -155,7 +155,8 @@ def _ego_boxes(mount: ego_mod.Mount) -> Boxes:
                      np.array([0.3, 0.3]))
 
 
-def _subset(prims: Boxes | Cylinders | Spheres, keep: np.ndarray):
+def subset(prims: Boxes | Cylinders | Spheres, keep: np.ndarray):
+    """The primitives where keep is true (same type)."""
     return type(prims)(*(getattr(prims, f)[keep] for f in prims.__dataclass_fields__))
 
 
@@ -273,11 +274,11 @@ class Simulator:
         reach = preset.max_range + 20.0
         st = scene.static
         near = lambda c: np.hypot(*(c[:, :2] - sensor_xy).T) < reach  # noqa: E731
-        caster.boxes(_subset(st.boxes, near(st.boxes.centre)))
+        caster.boxes(subset(st.boxes, near(st.boxes.centre)))
         caster.boxes(scene.traffic.boxes(scene.ref, scene.surface, (k + 0.5) * PERIOD_S,
                                          sensor_xy, reach))
-        caster.cylinders(_subset(st.cylinders, near(st.cylinders.base)))
-        caster.spheres(_subset(st.spheres, near(st.spheres.centre)), r_struct.random((nb, nw)))
+        caster.cylinders(subset(st.cylinders, near(st.cylinders.base)))
+        caster.spheres(subset(st.spheres, near(st.spheres.centre)), r_struct.random((nb, nw)))
         # ground; the ego's own body blocks rays but never returns
         blocked = np.minimum(caster.t, self._ego_t)
         ground_range = min(preset.max_range, GROUND_RANGE_M)
