@@ -25,6 +25,7 @@ from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 
 from fhld_ros.errors import CliError
 from msg_adapters.family import RosbagsFamily, rosbags_family
+from msg_adapters.lanes import LaneSet, marker_array_to_lanes
 
 
 class BagError(CliError, ValueError):
@@ -109,6 +110,18 @@ def read_messages(path: str | Path,
             raise BagError(f'bag {path}: cannot decode a {msgtype} message on {topic} at '
                            f'{stamp} ns: {exc}') from exc
         yield topic, stamp, msg
+
+
+def read_lane_sets(path: str | Path, topic: str) -> list[LaneSet]:
+    """The lane sets of every MarkerArray on `topic`, in bag order; an empty array has no
+    header, so its stamp is its log time."""
+    sets = []
+    for _, log_ns, msg in read_messages(path, [topic]):
+        lane_set = marker_array_to_lanes(msg)
+        if not msg.markers:
+            lane_set.stamp_ns = log_ns
+        sets.append(lane_set)
+    return sets
 
 
 def _bag_folder_problem(path: Path) -> str | None:

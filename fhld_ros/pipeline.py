@@ -20,6 +20,7 @@ from __future__ import annotations
 import bisect
 import collections
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -94,15 +95,23 @@ class PoseBuffer:
     def at(self, stamp_ns: int) -> np.ndarray | None:
         """Pose at stamp_ns, or None when no two poses at most ODOM_MAX_GAP_NS apart (or one
         at exactly stamp_ns) surround it: no extrapolation, no hold."""
-        index = bisect.bisect_left(self.stamps, stamp_ns)
-        if index < len(self.stamps) and self.stamps[index] == stamp_ns:
-            return self.poses[index]
-        if index == 0 or index == len(self.stamps):
-            return None
-        t0, t1 = self.stamps[index - 1], self.stamps[index]
-        if t1 - t0 > ODOM_MAX_GAP_NS:
-            return None
-        return interpolate_pose(stamp_ns, t0, self.poses[index - 1], t1, self.poses[index])
+        return pose_at(self.stamps, self.poses, stamp_ns, ODOM_MAX_GAP_NS)
+
+
+def pose_at(stamps: Sequence[int], poses: Sequence[np.ndarray], stamp_ns: int,
+            max_gap_ns: int | None) -> np.ndarray | None:
+    """The pose at stamp_ns from sorted stamped poses: the one at exactly that stamp, else
+    interpolated between the two around it (None outside them, or when they lie more than
+    max_gap_ns apart)."""
+    index = bisect.bisect_left(stamps, stamp_ns)
+    if index < len(stamps) and stamps[index] == stamp_ns:
+        return poses[index]
+    if index == 0 or index == len(stamps):
+        return None
+    t0, t1 = int(stamps[index - 1]), int(stamps[index])
+    if max_gap_ns is not None and t1 - t0 > max_gap_ns:
+        return None
+    return interpolate_pose(stamp_ns, t0, poses[index - 1], t1, poses[index])
 
 
 class LaneIdTracker:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import collections
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.ndimage import uniform_filter1d
@@ -23,7 +23,7 @@ from fhld_ros.annotation.lane_regions import LaneMembers, lane_members
 from fhld_ros.annotation.recovery import recover_lane
 from fhld_ros.evaluation.metrics import resample_polyline
 from fhld_ros.intensity import CONTRAST, GROUND_LEVEL, IntensityEncoder
-from msg_adapters.odometry import interpolate_pose
+from fhld_ros.pipeline import pose_at
 
 PAST_S = 0.5
 FUTURE_S = 2.0
@@ -67,7 +67,6 @@ class AutolabelCounts:
     images_without_labels: int = 0
     images_without_points: int = 0  # the camera saw no ground return at all
     label_points_outside_image: int = 0
-    skipped_labels: list[int] = field(default_factory=list)
 
 
 class PoseTrack:
@@ -78,13 +77,7 @@ class PoseTrack:
         self.stamps, self.poses, self.frame_id = stamps[order], poses[order], frame_id
 
     def at(self, stamp_ns: int) -> np.ndarray | None:
-        k = int(np.searchsorted(self.stamps, stamp_ns))
-        if k < len(self.stamps) and self.stamps[k] == stamp_ns:
-            return self.poses[k]
-        if k == 0 or k == len(self.stamps):
-            return None
-        return interpolate_pose(stamp_ns, int(self.stamps[k - 1]), self.poses[k - 1],
-                                int(self.stamps[k]), self.poses[k])
+        return pose_at(self.stamps, self.poses, stamp_ns, max_gap_ns=None)
 
 
 class Autolabeler:
@@ -105,8 +98,7 @@ class Autolabeler:
         self.n_sweeps = 0
         matched = _match_stamps(labels, image_stamps)
         self.counts.images_without_labels = len(set(image_stamps) - set(matched.values()))
-        self.counts.skipped_labels = sorted(set(labels) - set(matched))
-        self.counts.labels_without_image = len(self.counts.skipped_labels)
+        self.counts.labels_without_image = len(set(labels) - set(matched))
         for label_stamp in sorted(matched, key=matched.get):
             image = labels[label_stamp]
             self.pending.append(ImageLabels(matched[label_stamp], image.frame_id,

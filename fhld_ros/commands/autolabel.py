@@ -63,49 +63,47 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--quiet', action='store_true', help='no progress bar')
 
 
-def _calibration(args: argparse.Namespace, counts: dict[str, int], cloud_frame: str
-                 ) -> CameraCalibration:
-    if args.calib is not None:
-        return CameraCalibration.from_yaml(args.calib)
-    if CAMERA_INFO not in counts:
+def _read_camera_and_odometry(args: argparse.Namespace, counts: dict[str, int],
+                              cloud_frame: str
+                              ) -> tuple[CameraCalibration, list[int], PoseTrack | None]:
+    """The calibration, the image stamps and the odometry, in one pass over the small topics
+    (each pass decompresses the bag's chunks, images and clouds included)."""
+    if args.calib is None and CAMERA_INFO not in counts:
         raise ConfigError(f'bag {args.in_bag} has no {CAMERA_INFO}; give the camera with '
                           '--calib YAML')
-    info = next(msg for _, _, msg in read_messages(args.in_bag, [CAMERA_INFO]))
-    tf = [msg for _, _, msg in read_messages(args.in_bag, [TF_STATIC])] \
-        if TF_STATIC in counts else []
-    return CameraCalibration.from_messages(info, tf, cloud_frame)
-
-
-def _image_stamps(args: argparse.Namespace, counts: dict[str, int]) -> list[int]:
-    topic = next((t for t in (CAMERA_INFO, IMAGE, args.points_topic) if counts.get(t)), None)
-    return [stamp_to_ns(msg.header.stamp) for _, _, msg in read_messages(args.in_bag, [topic])]
-
-
-def _poses(args: argparse.Namespace, counts: dict[str, int], cloud_frame: str
-           ) -> PoseTrack | None:
-    if not args.odom_topic or not counts.get(args.odom_topic):
-        return None
-    stamps, poses, frame = [], [], None
-    for _, _, msg in read_messages(args.in_bag, [args.odom_topic]):
-        if msg.child_frame_id != cloud_frame:
-            raise ConfigError(f'{args.odom_topic} gives the pose of "{msg.child_frame_id}", '
-                              f'the clouds are in "{cloud_frame}": autolabel needs the LiDAR\'s '
-                              'own odometry')
-        try:
-            poses.append(odometry_to_matrix(msg))
-        except ValueError as exc:
-            raise ConfigError(f'{args.odom_topic}: {exc}') from exc
-        stamps.append(stamp_to_ns(msg.header.stamp))
-        frame = msg.header.frame_id
-    return PoseTrack(np.array(stamps, dtype=np.int64), np.stack(poses), str(frame))
+    odom = args.odom_topic if args.odom_topic and counts.get(args.odom_topic) else None
+    # image stamps from the camera info, else the images, else the sweeps
+    stamp_topic = next(t for t in (CAMERA_INFO, IMAGE, args.points_topic) if counts.get(t))
+    topics = {stamp_topic, *(t for t in (CAMERA_INFO, TF_STATIC, odom) if t in counts)}
+    infos, tf, stamps, poses, pose_stamps, odom_frame = [], [], [], [], [], None
+    for topic, _, msg in read_messages(args.in_bag, sorted(topics)):
+        if topic == stamp_topic:
+            stamps.append(stamp_to_ns(msg.header.stamp))
+        if topic == CAMERA_INFO:
+            infos.append(msg)
+        elif topic == TF_STATIC:
+            tf.append(msg)
+        elif topic == odom:
+            if msg.child_frame_id != cloud_frame:
+                raise ConfigError(f'{odom} gives the pose of "{msg.child_frame_id}", the clouds '
+                                  f'are in "{cloud_frame}": autolabel needs the LiDAR\'s own '
+                                  'odometry')
+            try:
+                poses.append(odometry_to_matrix(msg))
+            except ValueError as exc:
+                raise ConfigError(f'{odom}: {exc}') from exc
+            pose_stamps.append(stamp_to_ns(msg.header.stamp))
+            odom_frame = msg.header.frame_id
+    calib = CameraCalibration.from_yaml(args.calib) if args.calib is not None else \
+        CameraCalibration.from_messages(infos[0], tf, cloud_frame)
+    track = None if odom is None else PoseTrack(np.array(pose_stamps, dtype=np.int64),
+                                                np.stack(poses), str(odom_frame))
+    return calib, stamps, track
 
 
 def _check(args: argparse.Namespace) -> dict[str, int]:
     inputs = {'IN_BAG': args.in_bag, '--labels2d': args.labels2d}
     check_output(args.out_bag, args.overwrite, inputs)
-    if args.once_json is not None and args.once_json.exists() and \
-            not args.once_json.is_dir():
-        raise ConfigError(f'--once-json {args.once_json}: exists and is not a directory')
     counts = topic_counts(args.in_bag)
     if not counts.get(args.points_topic):
         raise ConfigError(f'bag {args.in_bag} has no messages on {args.points_topic} (it has: '
@@ -127,14 +125,13 @@ def run(args: argparse.Namespace) -> int:
     labels = read_label_dir(args.labels2d)
     first_cloud = next(msg for _, _, msg in read_messages(args.in_bag, [args.points_topic]))
     cloud_frame = str(first_cloud.header.frame_id)
-    calib = _calibration(args, counts, cloud_frame)
+    calib, image_stamps, poses = _read_camera_and_odometry(args, counts, cloud_frame)
     for stamp, image in labels.items():
         if tuple(image.image_size) != (calib.width, calib.height):
             raise ConfigError(f'--labels2d {stamp}.json is for a {image.image_size[0]}x'
                               f'{image.image_size[1]} image, the camera is {calib.width}x'
                               f'{calib.height}')
-    image_stamps = _image_stamps(args, counts)
-    labeler = Autolabeler(calib, labels, image_stamps, _poses(args, counts, cloud_frame))
+    labeler = Autolabeler(calib, labels, image_stamps, poses)
     if not labeler.stamps:
         raise ConfigError(f'no label file names an image of {args.in_bag}: label stamps '
                           f'{min(labels)}..{max(labels)} ns, images {min(image_stamps)}..'

@@ -28,12 +28,11 @@ from fhld_ros.bagio import (
     BagError,
     bag_topics,
     check_file_output,
-    read_messages,
+    read_lane_sets,
     write_file_atomically,
 )
 from fhld_ros.errors import ConfigError
 from fhld_ros.evaluation import metrics
-from msg_adapters.lanes import marker_array_to_lanes
 
 MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
 GT_LEAD_NS = 1_000_000_000  # a /lanes message may precede the first /lanes_gt by this much
@@ -103,12 +102,7 @@ def _read_lanesets(path: str, topic: str, role: str) -> list[Any]:
             raise ConfigError(f'{role} bag {path} has no topic {topic} (it has: {have})')
         if topics[topic] != MARKER_ARRAY:
             raise ConfigError(f'{role} bag {path}: {topic} is {topics[topic]}, not {MARKER_ARRAY}')
-        sets = []
-        for _, log_ns, msg in read_messages(path, [topic]):
-            lane_set = marker_array_to_lanes(msg)
-            if not msg.markers:  # an empty array has no header: use the bag time
-                lane_set.stamp_ns = log_ns
-            sets.append(lane_set)
+        sets = read_lane_sets(path, topic)
     except BagError as exc:
         raise ConfigError(str(exc)) from exc
     if not sets:

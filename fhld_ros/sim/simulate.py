@@ -16,7 +16,6 @@ non-empty DIR unless --overwrite, which replaces only the label files of this ru
 from __future__ import annotations
 
 import argparse
-import os
 import re
 from pathlib import Path
 
@@ -236,7 +235,5 @@ def _write_labels(directory: Path, labels: list[ImageLabels]) -> None:
     """After the bag is in place: each file through a temporary name in the directory."""
     directory.mkdir(exist_ok=True)
     for item in labels:
-        path = label_path(directory, item.stamp_ns)
-        tmp = path.with_name(f'.{path.name}.tmp')
-        write_labels(tmp, item)
-        os.replace(tmp, path)
+        write_file_atomically(label_path(directory, item.stamp_ns),
+                              lambda tmp, item=item: write_labels(tmp, item))

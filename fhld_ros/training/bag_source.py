@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from fhld_ros.bagio import BagError, bag_topics, read_messages, topic_counts
+from fhld_ros.bagio import BagError, bag_topics, read_lane_sets, read_messages, topic_counts
 from fhld_ros.bev import BevSpec
 from fhld_ros.pipeline import LanePipeline
 from fhld_ros.rolling_grid import BevWindow
@@ -49,7 +49,7 @@ from fhld_ros.training.cache import (
     write_shard,
 )
 from fhld_ros.training.samples import TrainingSample, accumulation, lanes_in_window, window_ends
-from msg_adapters.lanes import LaneSet, marker_array_to_lanes
+from msg_adapters.lanes import LaneSet
 
 BAG_FORMAT = 1  # raise when the windows of the same bag and settings would change
 POINTS, ODOM, LANES_GT = '/points', '/odom', '/lanes_gt'
@@ -149,13 +149,7 @@ class _WindowTaker(LanePipeline):
 
 def read_labels(path: str | os.PathLike, topic: str = LANES_GT) -> list[LaneSet]:
     """The GT lane sets of a bag in stamp order (an empty MarkerArray at its log time)."""
-    sets = []
-    for _, log_ns, msg in read_messages(path, [topic]):
-        lane_set = marker_array_to_lanes(msg)
-        if not msg.markers:
-            lane_set.stamp_ns = log_ns
-        sets.append(lane_set)
-    return sorted(sets, key=lambda s: s.stamp_ns)
+    return sorted(read_lane_sets(path, topic), key=lambda s: s.stamp_ns)
 
 
 def bag_samples(bag: LabelledBag, settings: CacheSettings, stats: Counter | None = None,
