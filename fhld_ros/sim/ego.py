@@ -119,6 +119,8 @@ class Mount:
 
     x: float = 0.3
     z: float = 1.95
+    pitch: float = 0.0  # mounting error of the sensor against the vehicle (rad)
+    roll: float = 0.0
 
 
 def poses(ref: ReferenceLine, plan: EgoPlan, t: np.ndarray, mount: Mount) -> np.ndarray:
@@ -139,6 +141,9 @@ def poses(ref: ReferenceLine, plan: EgoPlan, t: np.ndarray, mount: Mount) -> np.
     base = ref.to_world(s, d)
     out = np.tile(np.eye(4), (t.size, 1, 1))
     out[:, :3, :3] = rot
+    if mount.pitch or mount.roll:  # the sensor tilted on its mount, not the vehicle
+        out[:, :3, :3] = rot @ rotation_rpy(np.array(mount.roll), np.array(mount.pitch),
+                                            np.array(0.0))
     out[:, :3, 3] = base + rot @ np.array([mount.x, 0.0, mount.z])
     return out
 

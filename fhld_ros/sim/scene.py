@@ -30,6 +30,20 @@ class Roadside:
     ditch: float  # ditch depth just beyond the verge
 
 
+@dataclass(frozen=True)
+class RoadLook:
+    """What real pavements vary beyond the usual asphalt (defaults: the usual road).
+
+    KITTI's asphalt reads ~3x brighter than the usual simulated one, so its concrete
+    sidewalks and gutters hardly stand out; gutters and sealed seams are paint-like stripes
+    that are not lane lines.
+    """
+
+    asphalt_rho: float | None = None  # pavement diffuse reflectance; None: U(0.07, 0.14)
+    gutter_ratio: float | None = None  # a 0.25-0.6 m strip along each paved edge, x pavement
+    seams: bool = False  # dark sealed cracks along the lanes and joints across them
+
+
 def _roadside(rng: np.random.Generator, road_class: str) -> Roadside:
     if road_class == 'urban':
         return Roadside(rng.uniform(0.10, 0.18), rng.uniform(1.5, 4.0), 0.0,
@@ -38,11 +52,50 @@ def _roadside(rng: np.random.Generator, road_class: str) -> Roadside:
                     rng.uniform(0.0, 0.6) if rng.random() < 0.6 else 0.0)
 
 
+@dataclass(frozen=True)
+class Seams:
+    """Sealed cracks: wandering stripes along the road at offsets d0 (one row per seam), and
+    joints across it every `joint_period` m (0: none), all darker than the pavement."""
+
+    d0: np.ndarray
+    amp: np.ndarray
+    k: np.ndarray
+    phase: np.ndarray
+    half_w: np.ndarray
+    factor: np.ndarray
+    joint_period: float
+    joint_half_w: float
+    joint_factor: float
+
+
+def _draw_seams(rng: np.random.Generator, left: np.ndarray, right: np.ndarray) -> Seams:
+    n = int(rng.integers(1, 4))
+    lo, hi = float(np.median(right)), float(np.median(left))
+    joints = rng.random() < 0.4  # concrete slabs or sealed transverse cracks
+    return Seams(rng.uniform(lo, hi, n), rng.uniform(0.0, 0.4, n),
+                 2 * np.pi / rng.uniform(10.0, 60.0, n), rng.uniform(0, 2 * np.pi, n),
+                 rng.uniform(0.02, 0.07, n), rng.uniform(0.35, 0.75, n),
+                 float(rng.uniform(4.0, 8.0)) if joints else 0.0,
+                 float(rng.uniform(0.02, 0.05)), float(rng.uniform(0.4, 0.8)))
+
+
+def _seam_factor(seams: Seams, s: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Reflectance factor (<= 1) of the seams at road coordinates."""
+    centre = seams.d0 + seams.amp * np.sin(np.multiply.outer(s, seams.k) + seams.phase)
+    on = np.abs(d[:, None] - centre) <= seams.half_w
+    factor = np.where(on, seams.factor, 1.0).min(axis=1)
+    if seams.joint_period:
+        phase = np.mod(s, seams.joint_period)
+        near = np.minimum(phase, seams.joint_period - phase) <= seams.joint_half_w
+        factor = np.where(near, np.minimum(factor, seams.joint_factor), factor)
+    return factor
+
+
 class Surface:
     """Analytic ground height and material in road coordinates."""
 
     def __init__(self, ref: ReferenceLine, layout: Layout, rng: np.random.Generator,
-                 road_class: str) -> None:
+                 road_class: str, look: RoadLook = RoadLook()) -> None:
         self.ref, self.layout, self.road_class = ref, layout, road_class
         left, right = layout.paved_extent()
         gore_hi, gore_lo = layout.gore_span()
@@ -67,6 +120,12 @@ class Surface:
         angp = rng.uniform(0, np.pi, 3)
         self._patches = np.stack([kp * np.cos(angp), kp * np.sin(angp),
                                   rng.uniform(0, 2 * np.pi, 3)], axis=1)
+        # drawn last, so a road without them is the same road as before
+        if look.asphalt_rho is not None:
+            self.asphalt = float(look.asphalt_rho)
+        self.gutter = (None if look.gutter_ratio is None else
+                       (float(rng.uniform(0.25, 0.6)), float(look.gutter_ratio)))
+        self.seams = _draw_seams(rng, left, right) if look.seams else None
 
     def _rows(self, s: np.ndarray, cols: int = 6) -> np.ndarray:
         """The first `cols` (4 or 6) table columns at s, linearly interpolated: one gather
@@ -152,6 +211,14 @@ class Surface:
                         [self.asphalt * (1.0 + 0.25 * np.round(2 * patches) / 2),
                          np.full(s.shape, 0.30), np.full(s.shape, 0.22)],
                         0.35 + 0.1 * patches)
+        paved = mat == ASPHALT
+        if self.gutter is not None:
+            width, ratio = self.gutter
+            edge = np.minimum(e_left - d, d - e_right)  # distance inside the paved edge
+            rho = np.where(paved & (edge <= width), rho * ratio, rho)
+        if self.seams is not None and paved.any():
+            index = np.flatnonzero(paved)
+            rho[index] *= _seam_factor(self.seams, s[index], d[index])
         return mat, rho
 
     def normal_slopes(self, s: np.ndarray, d: np.ndarray, z: np.ndarray, eps: float = 0.03,

@@ -50,7 +50,7 @@ from fhld_ros.sim.obstacles import (
 )
 from fhld_ros.sim.raycast import ObstacleCaster, RayBundle, cast_ground
 from fhld_ros.sim.road import ReferenceLine, RoadShape, make_reference_line
-from fhld_ros.sim.scene import PAINT, GroundGrid, Surface
+from fhld_ros.sim.scene import PAINT, GroundGrid, RoadLook, Surface
 
 SPEED_RANGE = {'highway': (18.0, 30.0), 'urban': (5.0, 14.0), 'rural': (12.0, 25.0)}
 PERIOD_S = 0.1  # 10 Hz sweeps
@@ -60,6 +60,7 @@ GROUND_RANGE_M = 100.0  # ground beyond this is too grazing to return anything
 MAX_SPEED = 30.0
 MAX_SWEEPS = 6000  # 10 minutes of driving (road tables grow with the distance)
 PAINT_RHO = {False: 0.55, True: 0.45}  # white / yellow paint, diffuse part
+MAX_MOUNT_TILT_DEG = 5.0
 PAINT_RETRO = 1.0  # glass-bead retro-reflection of fresh paint (relative)
 
 
@@ -84,6 +85,11 @@ class SimConfig:
     paint_contrast: float | None = None
     markings: bool = True  # False: the same road with no paint at all (no lines, no GT)
     mount_z: float | None = None  # sensor height above the road; default: the preset's
+    mount_pitch_deg: float = 0.0  # sensor tilted on its mount (+ pitch: looking down)
+    mount_roll_deg: float = 0.0
+    asphalt_rho: float | None = None  # scene.RoadLook: pavement brightness (KITTI-like ~0.25)
+    gutter_ratio: float | None = None  # a strip along the paved edges, x the pavement
+    seams: bool = False  # dark sealed cracks and joints
 
     def validate(self) -> None:
         def bad(msg: str) -> None:
@@ -111,6 +117,12 @@ class SimConfig:
             bad(f'paint_contrast must be within 1..20, got {self.paint_contrast:g}')
         if self.mount_z is not None and not 1.0 <= self.mount_z <= 3.0:
             bad(f'mount_z must be within 1..3 m, got {self.mount_z:g}')
+        if max(abs(self.mount_pitch_deg), abs(self.mount_roll_deg)) > MAX_MOUNT_TILT_DEG:
+            bad(f'mount pitch and roll must be within +-{MAX_MOUNT_TILT_DEG:g} degrees')
+        if self.asphalt_rho is not None and not 0.02 <= self.asphalt_rho <= 0.6:
+            bad(f'asphalt_rho must be within 0.02..0.6, got {self.asphalt_rho:g}')
+        if self.gutter_ratio is not None and not 0.3 <= self.gutter_ratio <= 4.0:
+            bad(f'gutter_ratio must be within 0.3..4, got {self.gutter_ratio:g}')
 
 
 @dataclass
@@ -204,10 +216,13 @@ class Simulator:
         if not config.markings:  # drawn as usual, then stripped: the road stays the same
             layout = replace(layout, style=replace(layout.style, marked=False), lines=[])
         paint = Paint(ref, layout, r_paint, road_class)
-        surface = Surface(ref, layout, r_surface, road_class)
+        surface = Surface(ref, layout, r_surface, road_class,
+                          RoadLook(config.asphalt_rho, config.gutter_ratio, config.seams))
         static = place_static(r_static, ref, layout, surface, road_class)
         self.plan = ego_mod.plan_ego(r_ego, layout, duration, v0)
-        self.mount = ego_mod.Mount(z=config.mount_z or self.preset.mount_z)
+        self.mount = ego_mod.Mount(z=config.mount_z or self.preset.mount_z,
+                                   pitch=float(np.deg2rad(config.mount_pitch_deg)),
+                                   roll=float(np.deg2rad(config.mount_roll_deg)))
         times = np.arange(planned) * PERIOD_S
         ego_s, ego_d, _ = self.plan.at(times)
         traffic = place_traffic(r_traffic, layout, ego_s, ego_d, times, v0, road_class)

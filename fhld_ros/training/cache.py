@@ -57,6 +57,10 @@ ALL_TOPOLOGIES: tuple[str | None, ...] = (None, *TOPOLOGIES)  # None: the layout
 WORN_PAINT_RANGE = (1.6, 8.0)
 NO_MARKINGS_SHARE = 0.2
 SINGLE_SWEEP_SHARE = 0.2
+BRIGHT_ASPHALT_RANGE = (0.16, 0.32)  # KITTI-like pavement (the usual one: 0.07-0.14)
+GUTTER_RATIO_RANGE = (0.6, 2.5)  # a light or dark strip along the curbs, x the pavement
+MOUNT_TILT_DEG = 3.0
+ROAD_LOOK_SHARE = 0.35  # each of bright pavement, gutters and seams on this share of seeds
 INDEX_NAME = 'cache.json'
 
 
@@ -75,6 +79,7 @@ class CacheSettings:
     motion_distortion_prob: float = 0.25
     intensity_encoding: str = CONTRAST  # the model's (FhldConfig.intensity_encoding)
     sensor_variation: bool = False  # training seeds only: sensor_variation() drawn per seed
+    road_look: bool = False  # sensor_variation also draws pavements and mount tilt
 
     def validate(self) -> None:
         unknown = [s for s in self.sensors if s not in SENSORS]
@@ -113,11 +118,11 @@ def scenario_for_seed(seed: int, settings: CacheSettings = CacheSettings()) -> d
                 'odom_noise': round(drift, 3),
                 'motion_distortion': bool(rng.random() < settings.motion_distortion_prob)}
     if settings.sensor_variation and seed < TEST_SEED_BASE:
-        scenario.update(sensor_variation(seed))
+        scenario.update(sensor_variation(seed, settings.road_look))
     return scenario
 
 
-def sensor_variation(seed: int) -> dict:
+def sensor_variation(seed: int, road_look: bool = False) -> dict:
     """What real sensors and roads vary, drawn per training seed:
 
     * paint: 60 % worn, beads gone, reflectance WORN_PAINT_RANGE x the asphalt's
@@ -128,6 +133,9 @@ def sensor_variation(seed: int) -> dict:
     * mount: half the seeds 1.4-2.5 m above the road instead of the preset's height
     * SINGLE_SWEEP_SHARE of the seeds: windows of one sweep without odometry (the cloud frame,
       as the node runs without /odom), ending where the accumulated windows would
+    * with road_look, each on ROAD_LOOK_SHARE of the seeds (sim.scene.RoadLook): KITTI-like
+      bright pavement, gutters along the paved edges, sealed seams and joints; half the
+      seeds: the sensor tilted up to MOUNT_TILT_DEG in pitch and roll
     """
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x5E75]))
     worn = rng.random() < 0.6
@@ -140,7 +148,23 @@ def sensor_variation(seed: int) -> dict:
             'markings': bool(rng.random() >= NO_MARKINGS_SHARE), 'intensity': units,
             'intensity_gain': round(gain, 3),
             'mount_z': None if mount is None else round(mount, 3),
-            'single_sweep': bool(rng.random() < SINGLE_SWEEP_SHARE)}
+            'single_sweep': bool(rng.random() < SINGLE_SWEEP_SHARE),
+            **(_road_look(rng) if road_look else {})}
+
+
+def _road_look(rng: np.random.Generator) -> dict:
+    """sensor_variation's pavement and mount draws (after its older ones, which stay put)."""
+    def log_uniform(lo: float, hi: float) -> float:
+        return round(float(np.exp(rng.uniform(np.log(lo), np.log(hi)))), 3)
+    bright = rng.random() < ROAD_LOOK_SHARE
+    asphalt = log_uniform(*BRIGHT_ASPHALT_RANGE)
+    gutter = rng.random() < ROAD_LOOK_SHARE
+    ratio = log_uniform(*GUTTER_RATIO_RANGE)
+    seams = bool(rng.random() < ROAD_LOOK_SHARE)
+    tilt = rng.uniform(-MOUNT_TILT_DEG, MOUNT_TILT_DEG, 2) * (rng.random() < 0.5)
+    return {'asphalt_rho': asphalt if bright else None, 'gutter_ratio': ratio if gutter else None,
+            'seams': seams, 'mount_pitch_deg': round(float(tilt[0]), 2) + 0.0,
+            'mount_roll_deg': round(float(tilt[1]), 2) + 0.0}
 
 
 def single_sweep_windows(settings: CacheSettings) -> dict:
@@ -250,10 +274,17 @@ def _check_index(out_dir: Path, settings: CacheSettings) -> None:
     """cache.json must match the requested settings (written on the first build)."""
     index = out_dir / INDEX_NAME
     wanted = {'format': SHARD_FORMAT, 'settings': to_plain(settings)}
+    if not settings.road_look:  # caches from before the option stay valid
+        del wanted['settings']['road_look']
     if settings.sensor_variation:  # its constants shape the shards too
         wanted['variation'] = {'worn_paint_range': list(WORN_PAINT_RANGE),
                                'no_markings_share': NO_MARKINGS_SHARE,
                                'single_sweep_share': SINGLE_SWEEP_SHARE}
+        if settings.road_look:
+            wanted['variation'].update(
+                bright_asphalt_range=list(BRIGHT_ASPHALT_RANGE),
+                gutter_ratio_range=list(GUTTER_RATIO_RANGE), mount_tilt_deg=MOUNT_TILT_DEG,
+                road_look_share=ROAD_LOOK_SHARE)
     if index.exists():
         stored = json.loads(index.read_text())
         if stored != wanted:
