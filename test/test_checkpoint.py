@@ -10,10 +10,12 @@ import torch
 
 import fhld_ros.model.checkpoint as checkpoint_module
 import fhld_ros.model.config as config_module
+from fhld_ros.errors import ConfigError
 from fhld_ros.model.checkpoint import (
     FORMAT,
     CheckpointError,
     code_version,
+    interpolate_checkpoints,
     load_checkpoint,
     save_checkpoint,
 )
@@ -212,3 +214,26 @@ def test_checkpoints_from_before_the_contrast_encoding_read_absolute_intensity(t
     torch.save(payload, path)
     with pytest.raises(CheckpointError, match='intensity_encoding must be one of'):
         load_checkpoint(path)
+
+
+def test_interpolated_checkpoint_lies_between_its_sources(saved, tmp_path):
+    start_model, start = saved
+    torch.manual_seed(1)
+    tuned_model = FhldDetector(start_model.cfg).eval()
+    tuned = save_checkpoint(tmp_path / 'tuned.pt', tuned_model, 'fhld train --resume',
+                            meta={'iteration': 7, 'train_state': {'optimizer': {}}})
+    out = interpolate_checkpoints(start, tuned, 0.75, tmp_path / 'mix.pt')
+    mixed = load_checkpoint(out)
+    a, b = start_model.state_dict(), tuned_model.state_dict()
+    for key, value in mixed.model.state_dict().items():
+        if value.is_floating_point():
+            torch.testing.assert_close(value, 0.25 * a[key] + 0.75 * b[key])
+    assert mixed.train_command == 'fhld train --resume'
+    assert mixed.meta['iteration'] == 7 and 'train_state' not in mixed.meta
+    assert mixed.meta['interpolated']['tuned_weight'] == 0.75
+    with pytest.raises(ConfigError, match='within 0..1'):
+        interpolate_checkpoints(start, tuned, 1.5, tmp_path / 'bad.pt')
+    other = save_checkpoint(tmp_path / 'other.pt', FhldDetector(small_config()), 'x')
+    with pytest.raises(CheckpointError, match='different model configs'):
+        interpolate_checkpoints(start, other, 0.5, tmp_path / 'bad.pt')
+    assert not (tmp_path / 'bad.pt').exists()

@@ -125,3 +125,19 @@ def test_sensor_variation_draws_for_training_seeds_only():
     assert all(plain[k].items() <= scenarios[k].items() for k in range(200))
     for seed in range(TEST_SEED_BASE, TEST_SEED_BASE + 56):
         assert scenario_for_seed(seed, varied) == scenario_for_seed(seed)
+
+
+def test_road_look_adds_pavements_and_tilt_to_the_same_draws():
+    varied = CacheSettings(sensor_variation=True)
+    looks = CacheSettings(sensor_variation=True, road_look=True)
+    for seed in range(100):
+        base, more = scenario_for_seed(seed, varied), scenario_for_seed(seed, looks)
+        assert base.items() <= more.items()  # the older draws stay put
+        assert set(more) - set(base) == {'asphalt_rho', 'gutter_ratio', 'seams',
+                                         'mount_pitch_deg', 'mount_roll_deg'}
+    scenarios = [scenario_for_seed(seed, looks) for seed in range(300)]
+    for key in ('asphalt_rho', 'gutter_ratio', 'seams'):
+        assert 0.2 < sum(bool(s[key]) for s in scenarios) / 300 < 0.5
+    tilts = np.array([[s['mount_pitch_deg'], s['mount_roll_deg']] for s in scenarios])
+    assert np.abs(tilts).max() <= 3.0 and 0.3 < np.mean(tilts[:, 0] != 0) < 0.7
+    assert scenario_for_seed(TEST_SEED_BASE, looks) == scenario_for_seed(TEST_SEED_BASE)

@@ -213,11 +213,53 @@ def test_no_markings_is_the_same_road_without_paint_or_gt() -> None:
     assert np.isnan(sample.meta['paint_contrast'])
 
 
+def test_road_look_changes_the_pavement_only_where_asked() -> None:
+    base = Simulator(7, sweeps=1, sensor='os1-64', columns=512, road='urban')
+    look = Simulator(7, sweeps=1, sensor='os1-64', columns=512, road='urban', asphalt_rho=0.25,
+                     gutter_ratio=2.0, seams=True)
+    assert np.array_equal(base.true_poses, look.true_poses)
+    assert all(np.array_equal(a, b) for a, b in zip(base.scene.lane_lines,
+                                                    look.scene.lane_lines))
+    d = np.arange(-15.0, 15.0, 0.01)
+    s = np.full(d.shape, 40.0)
+    mat0, rho0 = base.scene.surface.material(s, d)
+    mat1, rho1 = look.scene.surface.material(s, d)
+    assert np.array_equal(mat0, mat1)
+    paved = np.flatnonzero(mat1 == 1)
+    ratio = rho1[paved] / rho0[paved] * base.scene.surface.asphalt / 0.25
+    width, _ = look.scene.surface.gutter
+    edge = np.minimum(d[paved].max() - d[paved], d[paved] - d[paved].min())
+    assert np.allclose(ratio[edge > width + 0.05].max(), 1.0)  # the pavement, brighter
+    assert np.median(ratio[edge < width - 0.05]) == pytest.approx(2.0)  # gutters
+    assert 0.002 < np.mean(ratio < 0.8) < 0.1  # seams: narrow dark stripes
+    assert np.array_equal(rho0[mat0 != 1], rho1[mat1 != 1])  # sidewalks, terrain: the same
+
+
+def test_tilted_mount_tilts_the_ground_in_the_sensor_frame() -> None:
+    def ground_slopes(sim: Simulator) -> np.ndarray:
+        sweep = sim.sweep(0)
+        p = sweep.points
+        xyz = np.stack([p[a] for a in 'xyz'], axis=1).astype(np.float64)
+        near = (sweep.labels == 1) & (np.hypot(xyz[:, 0], xyz[:, 1]) < 15.0)
+        a = np.c_[xyz[near, :2], np.ones(near.sum())]
+        return np.linalg.lstsq(a, xyz[near, 2], rcond=None)[0][:2]  # dz/dx, dz/dy
+    flat = ground_slopes(Simulator(3, sweeps=1, sensor='os1-64', columns=512, road='highway'))
+    tilted = Simulator(3, sweeps=1, sensor='os1-64', columns=512, road='highway',
+                       mount_pitch_deg=3.0, mount_roll_deg=-2.0)
+    slope = ground_slopes(tilted) - flat
+    assert slope == pytest.approx([np.tan(np.deg2rad(3.0)), np.tan(np.deg2rad(2.0))], abs=0.01)
+    gt = tilted.scene.lane_lines  # GT stays in the world, the pose carries the tilt
+    assert all(np.array_equal(a, b) for a, b in zip(gt, Simulator(
+        3, sweeps=1, sensor='os1-64', columns=512, road='highway').scene.lane_lines))
+
+
 def test_bad_options_raise_clear_errors() -> None:
     for kwargs, text in (({'sensor': 'bogus'}, 'unknown sensor'), ({'speed': 40.0}, 'speed'),
                          ({'columns': 8}, 'columns'), ({'topology': 'loop'}, 'topology'),
                          ({'intensity': 'dB'}, 'intensity'),
-                         ({'paint_contrast': 0.5}, 'paint_contrast')):
+                         ({'paint_contrast': 0.5}, 'paint_contrast'),
+                         ({'mount_roll_deg': 8.0}, 'pitch and roll'),
+                         ({'asphalt_rho': 0.9}, 'asphalt_rho'), ({'gutter_ratio': 9}, 'gutter')):
         with pytest.raises(ValueError, match=text):
             Simulator(0, sweeps=1, **kwargs)
     with pytest.raises(ValueError, match='sweeps'):

@@ -131,6 +131,28 @@ def load_checkpoint(path: str | os.PathLike, expect: FhldConfig | None = None,
                             str(payload.get('train_command', '')), dict(payload.get('meta', {})))
 
 
+def interpolate_checkpoints(start: str | os.PathLike, tuned: str | os.PathLike,
+                            weight: float, out: str | os.PathLike) -> Path:
+    """Write (1 - weight) * start + weight * tuned, the weights of a fine-tuned model moved back
+    towards those it started from (WiSE-FT, Wortsman et al. 2022: more robust under a change of
+    data than either end). Both must share one config; the meta keeps tuned's, plus both
+    sources."""
+    if not 0.0 <= weight <= 1.0:
+        raise ConfigError(f'weight must be within 0..1, got {weight:g}')
+    a, b = load_checkpoint(start), load_checkpoint(tuned)
+    if a.config != b.config:
+        raise CheckpointError(f'{start} and {tuned} have different model configs')
+    sa, sb = a.model.state_dict(), b.model.state_dict()
+    b.model.load_state_dict({
+        k: (sa[k].float() * (1.0 - weight) + sb[k].float() * weight).to(sb[k].dtype)
+        if sb[k].is_floating_point() else sb[k] for k in sb})
+    meta = {k: v for k, v in b.meta.items() if k != 'train_state'}
+    meta['interpolated'] = {'start': str(start), 'start_code_version': a.code_version,
+                            'tuned': str(tuned), 'tuned_code_version': b.code_version,
+                            'tuned_weight': weight}
+    return save_checkpoint(out, b.model, b.train_command, meta)
+
+
 def build_default_detector() -> FhldDetector:
     """The shipped weights when present, else a randomly initialised default model."""
     if DEFAULT_CHECKPOINT.exists():
