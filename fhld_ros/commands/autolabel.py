@@ -7,8 +7,10 @@ calibration from /camera/camera_info + /tf_static, or --calib YAML, and its imag
 stamps). Each label file (`<stamp_ns>.json`) labels the image at that stamp. OUT_BAG gets one
 /lanes message (the /lanes contract: odometry frame, else the cloud frame) per labelled image,
 so `fhld eval OUT_BAG IN_BAG` scores it against /lanes_gt. --once-json DIR also writes the
-ONCE-3DLanes layout (lanes in the camera frame) per image. OUT_BAG and --once-json follow
-bagio's output rule.
+ONCE-3DLanes layout (lanes in the camera frame) per image. --lane-map makes OUT_BAG a training
+bag as well (training/bag_source.py): the drive's /points and /odom copied, and on /lanes_gt one
+message, stamped with the earliest sweep, holding the lane map of all images
+(annotation/lane_map.py). OUT_BAG and --once-json follow bagio's output rule.
 """
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
@@ -25,7 +28,8 @@ from fhld_ros.annotation.autolabel import Autolabeler, LabelledImage, PoseTrack
 from fhld_ros.annotation.calibration import CameraCalibration
 from fhld_ros.annotation.camera_topics import CAMERA_INFO, IMAGE, TF_STATIC
 from fhld_ros.annotation.figure import draw_autolabel
-from fhld_ros.annotation.labels2d import read_label_dir
+from fhld_ros.annotation.labels2d import ImageLabels, read_label_dir
+from fhld_ros.annotation.lane_map import build_lane_map
 from fhld_ros.bagio import (
     BagWriter,
     check_file_output,
@@ -35,6 +39,7 @@ from fhld_ros.bagio import (
     write_file_atomically,
 )
 from fhld_ros.errors import ConfigError
+from fhld_ros.training.bag_source import LANES_GT, MARKER_ARRAY, ODOM, POINTS, TOPIC_TYPES
 from msg_adapters.camera import msg_to_image
 from msg_adapters.family import stamp_to_ns
 from msg_adapters.lanes import lanes_to_marker_array, unique_marker_ids
@@ -52,6 +57,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='camera calibration (instead of /camera/camera_info + /tf_static)')
     parser.add_argument('--once-json', type=Path, metavar='DIR',
                         help='also write ONCE-3DLanes JSON (camera frame), one per image')
+    parser.add_argument('--lane-map', action='store_true',
+                        help='also make OUT_BAG a training bag (fhld train data.bags): /points '
+                        'and /odom copied, the merged lanes of all images on /lanes_gt; needs '
+                        'odometry')
     parser.add_argument('--plots', type=Path, metavar='DIR',
                         help='also draw each labelled image: lanes over the image and from above')
     parser.add_argument('--points-topic', default='/points')
@@ -119,25 +128,23 @@ def _once_json(calib: CameraCalibration, image: LabelledImage) -> dict:
     return {'lanes': lanes, 'calibration': K.tolist(), 'stamp_ns': image.stamp_ns}
 
 
-def run(args: argparse.Namespace) -> int:
-    start = time.perf_counter()
-    counts = _check(args)
-    labels = read_label_dir(args.labels2d)
-    first_cloud = next(msg for _, _, msg in read_messages(args.in_bag, [args.points_topic]))
-    cloud_frame = str(first_cloud.header.frame_id)
-    calib, image_stamps, poses = _read_camera_and_odometry(args, counts, cloud_frame)
+def _check_inputs(args: argparse.Namespace, labels: dict[int, ImageLabels],
+                  calib: CameraCalibration, poses: PoseTrack | None) -> None:
+    """Labels for the camera's image size; poses for --lane-map."""
     for stamp, image in labels.items():
         if tuple(image.image_size) != (calib.width, calib.height):
             raise ConfigError(f'--labels2d {stamp}.json is for a {image.image_size[0]}x'
                               f'{image.image_size[1]} image, the camera is {calib.width}x'
                               f'{calib.height}')
-    labeler = Autolabeler(calib, labels, image_stamps, poses)
-    if not labeler.stamps:
-        raise ConfigError(f'no label file names an image of {args.in_bag}: label stamps '
-                          f'{min(labels)}..{max(labels)} ns, images {min(image_stamps)}..'
-                          f'{max(image_stamps)} ns')
-    once_dir = args.once_json
-    for out_dir, suffix, option in ((once_dir, 'json', '--once-json'),
+    if args.lane_map and poses is None:
+        where = f'no messages on {args.odom_topic}' if args.odom_topic else "--odom-topic ''"
+        raise ConfigError(f'--lane-map needs the drive\'s poses, but {args.in_bag} has no '
+                          f'odometry ({where})')
+
+
+def _check_file_outputs(args: argparse.Namespace, labels: dict[int, ImageLabels]) -> None:
+    """--once-json and --plots: the files of the labels' stamps must be new or replaceable."""
+    for out_dir, suffix, option in ((args.once_json, 'json', '--once-json'),
                                     (args.plots, 'png', '--plots')):
         if out_dir is None:
             continue
@@ -147,15 +154,36 @@ def run(args: argparse.Namespace) -> int:
             for stamp in labels:
                 check_file_output(out_dir / f'{stamp}.{suffix}', args.overwrite,
                                   {'IN_BAG': args.in_bag}, option)
+
+
+def run(args: argparse.Namespace) -> int:
+    start = time.perf_counter()
+    counts = _check(args)
+    labels = read_label_dir(args.labels2d)
+    first_cloud = next(msg for _, _, msg in read_messages(args.in_bag, [args.points_topic]))
+    cloud_frame = str(first_cloud.header.frame_id)
+    calib, image_stamps, poses = _read_camera_and_odometry(args, counts, cloud_frame)
+    _check_inputs(args, labels, calib, poses)
+    labeler = Autolabeler(calib, labels, image_stamps, poses)
+    if not labeler.stamps:
+        raise ConfigError(f'no label file names an image of {args.in_bag}: label stamps '
+                          f'{min(labels)}..{max(labels)} ns, images {min(image_stamps)}..'
+                          f'{max(image_stamps)} ns')
+    once_dir = args.once_json
+    _check_file_outputs(args, labels)
     images = {}  # rgb of labelled images waiting to be drawn
     wanted = set(labeler.stamps) if args.plots is not None else set()
-    topics = [args.points_topic] + ([IMAGE] if wanted and counts.get(IMAGE) else [])
+    topics = [args.points_topic] + ([IMAGE] if wanted and counts.get(IMAGE) else []) + \
+        ([args.odom_topic] if args.lane_map else [])
     bar = tqdm(total=counts[args.points_topic], unit='sweep', desc='autolabel',
                disable=args.quiet)
     with BagWriter(args.out_bag, overwrite=args.overwrite) as bag:
         fam = bag.family
+        lane_map = _LaneMapWriter(bag, poses.frame_id) if args.lane_map else None
 
         def write(image: LabelledImage) -> None:
+            if lane_map is not None:
+                lane_map.add(image)
             header = fam.header(image.stamp_ns, image.frame_id)
             bag.write('/lanes', 'visualization_msgs/msg/MarkerArray', image.stamp_ns,
                       lanes_to_marker_array(fam, header, image.lanes, np.ones(len(image.lanes)),
@@ -169,7 +197,11 @@ def run(args: argparse.Namespace) -> int:
                 _plot(args.plots / f'{image.stamp_ns}.png', calib, image,
                       images.pop(image.stamp_ns, None))
 
-        for topic, _, msg in read_messages(args.in_bag, topics):
+        for topic, log_ns, msg in read_messages(args.in_bag, topics):
+            if lane_map is not None and topic != IMAGE:
+                lane_map.copy(POINTS if topic == args.points_topic else ODOM, log_ns, msg)
+                if topic != args.points_topic:
+                    continue
             if topic == IMAGE:
                 if stamp_to_ns(msg.header.stamp) in wanted:
                     images[stamp_to_ns(msg.header.stamp)] = msg_to_image(msg)
@@ -185,6 +217,8 @@ def run(args: argparse.Namespace) -> int:
         for image in labeler.finish():
             write(image)
         bar.close()
+        if lane_map is not None:
+            lane_map.finish()
         c = labeler.counts
         skipped = (f'skipped: {c.labels_without_image} label files without an image, '
                    f'{c.images_without_labels} images without labels, '
@@ -192,9 +226,47 @@ def run(args: argparse.Namespace) -> int:
                    f'{c.label_points_outside_image} label points outside the image dropped')
         if c.images == 0:  # inside the writer: the bag is not kept
             raise ConfigError(f'no image could be labelled in 3D ({skipped})')
-    print(f'fhld autolabel: {c.images} images labelled in 3D, {c.lanes} lanes, '
+    made = '' if lane_map is None else f', lane map of {lane_map.lines} lines'
+    print(f'fhld autolabel: {c.images} images labelled in 3D, {c.lanes} lanes{made}, '
           f'{time.perf_counter() - start:.1f} s; {skipped}', file=sys.stderr)
     return 0
+
+
+class _LaneMapWriter:
+    """--lane-map: the sweeps and odometry copied under the topics bag_source reads, and the
+    lane map of all labelled images on /lanes_gt, stamped with the earliest sweep so that every
+    training window (the newest /lanes_gt at or before its stamp) gets it."""
+
+    def __init__(self, bag: BagWriter, frame_id: str) -> None:
+        self.bag, self.frame_id = bag, frame_id
+        self.lanes: list[np.ndarray] = []
+        self.ids: list[int] = []
+        self.images: list[int] = []  # the image of each lane: its lanes are distinct lines
+        self.n_images = 0
+        self.origins: list[np.ndarray] = []  # the camera's (x, y): near points weigh more
+        self.first_sweep_ns: int | None = None
+        self.lines = 0
+
+    def copy(self, topic: str, log_ns: int, msg: Any) -> None:
+        if topic == POINTS:
+            stamp = stamp_to_ns(msg.header.stamp)
+            self.first_sweep_ns = min(stamp, self.first_sweep_ns or stamp)
+        self.bag.write(topic, TOPIC_TYPES[topic], log_ns, msg)
+
+    def add(self, image: LabelledImage) -> None:
+        self.images += [self.n_images] * len(image.lanes)
+        self.n_images += 1
+        self.origins += [image.T_out_camera[:2, 3]] * len(image.lanes)
+        self.lanes += image.lanes
+        self.ids += image.ids
+
+    def finish(self) -> None:
+        lines = build_lane_map(self.lanes, self.ids, self.images, self.origins)
+        fam, stamp = self.bag.family, int(self.first_sweep_ns or 0)
+        self.bag.write(LANES_GT, MARKER_ARRAY, stamp, lanes_to_marker_array(
+            fam, fam.header(stamp, self.frame_id), [line.points for line in lines],
+            np.ones(len(lines)), unique_marker_ids([line.label_id for line in lines])))
+        self.lines = len(lines)
 
 
 def _plot(path: Path, calib: CameraCalibration, image: LabelledImage,
