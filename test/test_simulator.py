@@ -213,6 +213,18 @@ def test_no_markings_is_the_same_road_without_paint_or_gt() -> None:
     assert np.isnan(sample.meta['paint_contrast'])
 
 
+def test_roads_without_edge_lines_keep_every_other_line() -> None:
+    marked = Simulator(7, sweeps=1, sensor='os1-64', columns=512, road='urban')
+    bare = Simulator(7, sweeps=1, sensor='os1-64', columns=512, road='urban', edge_lines=False)
+    kinds = [ln.kind for ln in marked.scene.layout.lines]
+    assert 'edge' in kinds and 'edge' not in [ln.kind for ln in bare.scene.layout.lines]
+    inner = [k for k, kind in enumerate(kinds) if kind != 'edge']
+    assert len(bare.scene.lane_lines) == len(inner) > 0
+    assert all(np.array_equal(bare.scene.lane_lines[i], marked.scene.lane_lines[k])
+               for i, k in enumerate(inner))
+    assert np.array_equal(bare.true_poses, marked.true_poses)
+
+
 def test_road_look_changes_the_pavement_only_where_asked() -> None:
     base = Simulator(7, sweeps=1, sensor='os1-64', columns=512, road='urban')
     look = Simulator(7, sweeps=1, sensor='os1-64', columns=512, road='urban', asphalt_rho=0.25,

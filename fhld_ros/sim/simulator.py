@@ -84,6 +84,7 @@ class SimConfig:
     # at most this many times the asphalt's
     paint_contrast: float | None = None
     markings: bool = True  # False: the same road with no paint at all (no lines, no GT)
+    edge_lines: bool = True  # False: the same road without its edge lines (lanes to the curb)
     mount_z: float | None = None  # sensor height above the road; default: the preset's
     mount_pitch_deg: float = 0.0  # sensor tilted on its mount (+ pitch: looking down)
     mount_roll_deg: float = 0.0
@@ -213,6 +214,8 @@ class Simulator:
         ref = make_reference_line(r_road, -200.0, travel + 500.0, shape, crossfall, 0.0)
         layout = make_layout(r_layout, r_paint, ref.s, road_class, 0.0, travel,
                              config.topology)
+        if not config.edge_lines:  # many city streets paint no line along the curb
+            layout = replace(layout, lines=[ln for ln in layout.lines if ln.kind != 'edge'])
         if not config.markings:  # drawn as usual, then stripped: the road stays the same
             layout = replace(layout, style=replace(layout.style, marked=False), lines=[])
         paint = Paint(ref, layout, r_paint, road_class)
