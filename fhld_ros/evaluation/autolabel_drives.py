@@ -36,7 +36,7 @@ from fhld_ros.errors import ConfigError
 from fhld_ros.evaluation.evaluate import evaluate_bags, summary
 from fhld_ros.evaluation.metrics import PointCounts, point_counts
 from fhld_ros.sim.lidar import SENSORS
-from fhld_ros.training.bag_source import LabelledBag, bag_samples, read_labels
+from fhld_ros.training.bag_source import LabelledBag, bag_samples, label_at, read_labels
 from fhld_ros.training.cache import TEST_SEED_BASE, CacheSettings
 from fhld_ros.training.samples import lanes_in_window
 
@@ -170,8 +170,8 @@ def score_lane_map(map_bag: Path, sim_bag: Path,
     half = settings.size_px * settings.resolution_m / 2
     out = MapScores()
     for window in bag_samples(LabelledBag(str(map_bag)), settings):
-        index = int(np.searchsorted(stamps, window.meta['stamp_ns'], side='right')) - 1
-        true = lanes_in_window(truth[max(index, 0)].lanes, window.window_to_odom, half)[0]
+        label = label_at(truth, stamps, window.meta['stamp_ns']) or truth[0]
+        true = lanes_in_window(label.lanes, window.window_to_odom, half)[0]
         counts = [point_counts(lanes, true) for lanes in (
             window.lanes, *(lanes_in_window(pool, window.window_to_odom, half)[0]
                             for pool in (lifted, seen)))]

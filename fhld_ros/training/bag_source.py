@@ -152,6 +152,13 @@ def read_labels(path: str | os.PathLike, topic: str = LANES_GT) -> list[LaneSet]
     return sorted(read_lane_sets(path, topic), key=lambda s: s.stamp_ns)
 
 
+def label_at(labels: list[LaneSet], stamps: np.ndarray, stamp_ns: int) -> LaneSet | None:
+    """A window's GT: the newest of the lane sets (stamps: theirs, ascending) at or before
+    stamp_ns; None before the first."""
+    index = int(np.searchsorted(stamps, stamp_ns, side='right')) - 1
+    return labels[index] if index >= 0 else None
+
+
 def bag_samples(bag: LabelledBag, settings: CacheSettings, stats: Counter | None = None,
                 progress: bool = False) -> Iterator[TrainingSample]:
     """The training windows of a labelled bag (see the module doc). `stats` counts sweeps,
@@ -173,11 +180,10 @@ def bag_samples(bag: LabelledBag, settings: CacheSettings, stats: Counter | None
 
     def labelled() -> Iterator[TrainingSample]:
         for sweep, window, frame in pipeline.taken:
-            index = int(np.searchsorted(label_stamps, window.stamp_ns, side='right')) - 1
-            if index < 0:
+            label = label_at(labels, label_stamps, window.stamp_ns)
+            if label is None:
                 stats['unlabelled'] += 1
                 continue
-            label = labels[index]
             if label.lanes and label.frame_id != frame:
                 stats['other_frame'] += 1
                 mismatch.add(f'{bag.lanes_topic} in {label.frame_id!r}, windows in {frame!r}')

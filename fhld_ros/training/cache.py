@@ -139,10 +139,9 @@ def sensor_variation(seed: int, road_look: bool = False) -> dict:
     """
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x5E75]))
     worn = rng.random() < 0.6
-    low, high = np.log(WORN_PAINT_RANGE)
-    contrast = float(np.exp(rng.uniform(low, high)))
+    contrast = _log_uniform(rng, *WORN_PAINT_RANGE)
     units = (None, *INTENSITY_SCALES)[int(rng.integers(4))]
-    gain = float(np.exp(rng.uniform(np.log(0.25), np.log(4.0)))) if rng.random() < 0.5 else 1.0
+    gain = _log_uniform(rng, 0.25, 4.0) if rng.random() < 0.5 else 1.0
     mount = float(rng.uniform(1.4, 2.5)) if rng.random() < 0.5 else None
     return {'paint_contrast': round(contrast, 3) if worn else None,
             'markings': bool(rng.random() >= NO_MARKINGS_SHARE), 'intensity': units,
@@ -152,14 +151,16 @@ def sensor_variation(seed: int, road_look: bool = False) -> dict:
             **(_road_look(rng) if road_look else {})}
 
 
+def _log_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
+    return float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+
+
 def _road_look(rng: np.random.Generator) -> dict:
     """sensor_variation's pavement and mount draws (after its older ones, which stay put)."""
-    def log_uniform(lo: float, hi: float) -> float:
-        return round(float(np.exp(rng.uniform(np.log(lo), np.log(hi)))), 3)
     bright = rng.random() < ROAD_LOOK_SHARE
-    asphalt = log_uniform(*BRIGHT_ASPHALT_RANGE)
+    asphalt = round(_log_uniform(rng, *BRIGHT_ASPHALT_RANGE), 3)
     gutter = rng.random() < ROAD_LOOK_SHARE
-    ratio = log_uniform(*GUTTER_RATIO_RANGE)
+    ratio = round(_log_uniform(rng, *GUTTER_RATIO_RANGE), 3)
     seams = bool(rng.random() < ROAD_LOOK_SHARE)
     tilt = rng.uniform(-MOUNT_TILT_DEG, MOUNT_TILT_DEG, 2) * (rng.random() < 0.5)
     return {'asphalt_rho': asphalt if bright else None, 'gutter_ratio': ratio if gutter else None,
