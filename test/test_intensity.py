@@ -141,3 +141,14 @@ def test_road_look_adds_pavements_and_tilt_to_the_same_draws():
     tilts = np.array([[s['mount_pitch_deg'], s['mount_roll_deg']] for s in scenarios])
     assert np.abs(tilts).max() <= 3.0 and 0.3 < np.mean(tilts[:, 0] != 0) < 0.7
     assert scenario_for_seed(TEST_SEED_BASE, looks) == scenario_for_seed(TEST_SEED_BASE)
+
+
+def test_bare_curbs_draws_roads_without_edge_lines_and_leaves_the_rest():
+    looks = CacheSettings(sensor_variation=True, road_look=True)
+    bare = CacheSettings(sensor_variation=True, road_look=True, bare_curbs=True)
+    scenarios = [scenario_for_seed(seed, bare) for seed in range(300)]
+    for seed, more in enumerate(scenarios[:100]):
+        base = scenario_for_seed(seed, looks)
+        assert base.items() <= more.items() and set(more) - set(base) == {'edge_lines'}
+    assert 0.4 < np.mean([not s['edge_lines'] for s in scenarios]) < 0.6
+    assert scenario_for_seed(TEST_SEED_BASE, bare) == scenario_for_seed(TEST_SEED_BASE)

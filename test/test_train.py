@@ -131,9 +131,10 @@ def test_cache_build_resumes_and_refuses_other_settings(caches):
     again = build_cache(caches / 'train', range(*TRAIN_SEEDS), TINY, workers=2, progress=False)
     assert again.built == [] and sorted(again.skipped) == [0, 1]
     assert not list((caches / 'train').glob('.*tmp*'))  # atomic writes leave nothing behind
-    other = dataclasses.replace(TINY, windows_per_seed=3)
-    with pytest.raises(ValueError, match='other settings'):
-        build_cache(caches / 'train', [5], other, workers=1, progress=False)
+    for other in (dataclasses.replace(TINY, windows_per_seed=3),
+                  dataclasses.replace(TINY, bare_curbs=True)):
+        with pytest.raises(ValueError, match='other settings'):
+            build_cache(caches / 'train', [5], other, workers=1, progress=False)
 
 
 def test_scenarios_cover_every_sensor_and_topology():

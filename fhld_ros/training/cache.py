@@ -61,6 +61,9 @@ BRIGHT_ASPHALT_RANGE = (0.16, 0.32)  # KITTI-like pavement (the usual one: 0.07-
 GUTTER_RATIO_RANGE = (0.6, 2.5)  # a light or dark strip along the curbs, x the pavement
 MOUNT_TILT_DEG = 3.0
 ROAD_LOOK_SHARE = 0.35  # each of bright pavement, gutters and seams on this share of seeds
+# with every simulated marked road painting a line just inside its curbs, the model learnt
+# "curb => lane line" and drew lanes along bare real curbs (docs/training.md)
+BARE_CURB_SHARE = 0.5
 INDEX_NAME = 'cache.json'
 
 
@@ -80,6 +83,7 @@ class CacheSettings:
     intensity_encoding: str = CONTRAST  # the model's (FhldConfig.intensity_encoding)
     sensor_variation: bool = False  # training seeds only: sensor_variation() drawn per seed
     road_look: bool = False  # sensor_variation also draws pavements and mount tilt
+    bare_curbs: bool = False  # sensor_variation also draws roads without lines along the curbs
 
     def validate(self) -> None:
         unknown = [s for s in self.sensors if s not in SENSORS]
@@ -118,11 +122,11 @@ def scenario_for_seed(seed: int, settings: CacheSettings = CacheSettings()) -> d
                 'odom_noise': round(drift, 3),
                 'motion_distortion': bool(rng.random() < settings.motion_distortion_prob)}
     if settings.sensor_variation and seed < TEST_SEED_BASE:
-        scenario.update(sensor_variation(seed, settings.road_look))
+        scenario.update(sensor_variation(seed, settings.road_look, settings.bare_curbs))
     return scenario
 
 
-def sensor_variation(seed: int, road_look: bool = False) -> dict:
+def sensor_variation(seed: int, road_look: bool = False, bare_curbs: bool = False) -> dict:
     """What real sensors and roads vary, drawn per training seed:
 
     * paint: 60 % worn, beads gone, reflectance WORN_PAINT_RANGE x the asphalt's
@@ -136,6 +140,8 @@ def sensor_variation(seed: int, road_look: bool = False) -> dict:
     * with road_look, each on ROAD_LOOK_SHARE of the seeds (sim.scene.RoadLook): KITTI-like
       bright pavement, gutters along the paved edges, sealed seams and joints; half the
       seeds: the sensor tilted up to MOUNT_TILT_DEG in pitch and roll
+    * with bare_curbs, BARE_CURB_SHARE of the seeds: no edge lines (the lanes run to the curb;
+      its own stream of draws, so the draws above stay put)
     """
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x5E75]))
     worn = rng.random() < 0.6
@@ -148,7 +154,8 @@ def sensor_variation(seed: int, road_look: bool = False) -> dict:
             'intensity_gain': round(gain, 3),
             'mount_z': None if mount is None else round(mount, 3),
             'single_sweep': bool(rng.random() < SINGLE_SWEEP_SHARE),
-            **(_road_look(rng) if road_look else {})}
+            **(_road_look(rng) if road_look else {}),
+            **(_bare_curbs(seed) if bare_curbs else {})}
 
 
 def _log_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
@@ -166,6 +173,11 @@ def _road_look(rng: np.random.Generator) -> dict:
     return {'asphalt_rho': asphalt if bright else None, 'gutter_ratio': ratio if gutter else None,
             'seams': seams, 'mount_pitch_deg': round(float(tilt[0]), 2) + 0.0,
             'mount_roll_deg': round(float(tilt[1]), 2) + 0.0}
+
+
+def _bare_curbs(seed: int) -> dict:
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 0xC0B5]))
+    return {'edge_lines': bool(rng.random() >= BARE_CURB_SHARE)}
 
 
 def single_sweep_windows(settings: CacheSettings) -> dict:
@@ -275,8 +287,9 @@ def _check_index(out_dir: Path, settings: CacheSettings) -> None:
     """cache.json must match the requested settings (written on the first build)."""
     index = out_dir / INDEX_NAME
     wanted = {'format': SHARD_FORMAT, 'settings': to_plain(settings)}
-    if not settings.road_look:  # caches from before the option stay valid
-        del wanted['settings']['road_look']
+    for option in ('road_look', 'bare_curbs'):  # caches from before the option stay valid
+        if not getattr(settings, option):
+            del wanted['settings'][option]
     if settings.sensor_variation:  # its constants shape the shards too
         wanted['variation'] = {'worn_paint_range': list(WORN_PAINT_RANGE),
                                'no_markings_share': NO_MARKINGS_SHARE,
@@ -286,6 +299,8 @@ def _check_index(out_dir: Path, settings: CacheSettings) -> None:
                 bright_asphalt_range=list(BRIGHT_ASPHALT_RANGE),
                 gutter_ratio_range=list(GUTTER_RATIO_RANGE), mount_tilt_deg=MOUNT_TILT_DEG,
                 road_look_share=ROAD_LOOK_SHARE)
+        if settings.bare_curbs:
+            wanted['variation']['bare_curb_share'] = BARE_CURB_SHARE
     if index.exists():
         stored = json.loads(index.read_text())
         if stored != wanted:

@@ -55,6 +55,7 @@ class DataSection:
     # training seeds draw sensor and road variation (cache.sensor_variation); held-out never
     sensor_variation: bool = False
     road_look: bool = False  # with sensor_variation: pavements (KITTI-like, gutters, seams), tilt
+    bare_curbs: bool = False  # with sensor_variation: half the roads without lines at the curbs
     cache_workers: int = 2
     # labelled bags as more training windows (module doc; training/bag_source.py), cached in
     # <parent of train_cache>/bags/ by the same --cache-only step
@@ -171,4 +172,5 @@ def cache_settings(cfg: TrainConfig, split: str) -> CacheSettings:
         stride=d.stride, sensors=tuple(d.sensors), topologies=tuple(d.topologies),
         odom_noise_max=d.odom_noise_max, motion_distortion_prob=d.motion_distortion_prob,
         intensity_encoding=model.intensity_encoding,
-        sensor_variation=d.sensor_variation and train, road_look=d.road_look and train)
+        sensor_variation=d.sensor_variation and train, road_look=d.road_look and train,
+        bare_curbs=d.bare_curbs and train)
