@@ -38,6 +38,7 @@ from fhld_ros.training.cache import (
     scenario_for_seed,
     shard_path,
 )
+from fhld_ros.training.config import cache_settings, load_config
 from fhld_ros.training.dataset import CacheDataset, collate
 from fhld_ros.training.loop import init_weights
 from fhld_ros.training.samples import training_samples
@@ -135,6 +136,15 @@ def test_cache_build_resumes_and_refuses_other_settings(caches):
                   dataclasses.replace(TINY, bare_curbs=True)):
         with pytest.raises(ValueError, match='other settings'):
             build_cache(caches / 'train', [5], other, workers=1, progress=False)
+
+
+@pytest.mark.parametrize('path', sorted((REPO / 'config').glob('train_*.yaml')),
+                         ids=lambda p: p.name)
+def test_shipped_training_configs_load(path):
+    cfg = load_config(path)
+    train, test = cache_settings(cfg, 'train'), cache_settings(cfg, 'test')
+    assert not (test.sensor_variation or test.road_look or test.bare_curbs)  # held out as is
+    assert train.bare_curbs == (path.name == 'train_cpu_barecurbs.yaml')
 
 
 def test_scenarios_cover_every_sensor_and_topology():
