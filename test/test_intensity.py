@@ -2,6 +2,8 @@
 sensor units and gain cancel; the ground it measures is local (any mount height or tilt)."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -16,7 +18,12 @@ from fhld_ros.intensity import (
 from fhld_ros.pipeline import LanePipeline
 from fhld_ros.ros.parameters import DetectorParams
 from fhld_ros.sim.simulator import Simulator
-from fhld_ros.training.cache import TEST_SEED_BASE, CacheSettings, scenario_for_seed
+from fhld_ros.training.cache import (
+    TEST_SEED_BASE,
+    CacheSettings,
+    _check_index,
+    scenario_for_seed,
+)
 from fhld_ros.training.samples import training_samples
 
 
@@ -152,3 +159,22 @@ def test_bare_curbs_draws_roads_without_edge_lines_and_leaves_the_rest():
         assert base.items() <= more.items() and set(more) - set(base) == {'edge_lines'}
     assert 0.4 < np.mean([not s['edge_lines'] for s in scenarios]) < 0.6
     assert scenario_for_seed(TEST_SEED_BASE, bare) == scenario_for_seed(TEST_SEED_BASE)
+
+
+def test_no_markings_share_unpaints_more_of_the_same_roads(tmp_path):
+    bare = CacheSettings(sensor_variation=True, road_look=True, bare_curbs=True)
+    more = dataclasses.replace(bare, no_markings_share=0.4)
+    before = [scenario_for_seed(seed, bare) for seed in range(300)]
+    after = [scenario_for_seed(seed, more) for seed in range(300)]
+    for old, new in zip(before, after):  # only 'markings' changes, and only true -> false
+        assert {k: v for k, v in old.items() if k != 'markings'} == \
+            {k: v for k, v in new.items() if k != 'markings'}
+        assert new['markings'] <= old['markings']
+    assert 0.1 < np.mean([not s['markings'] for s in before]) < 0.3
+    assert 0.3 < np.mean([not s['markings'] for s in after]) < 0.5
+    assert scenario_for_seed(TEST_SEED_BASE, more) == scenario_for_seed(TEST_SEED_BASE)
+    _check_index(tmp_path, bare)  # a cache records the share it was built with
+    with pytest.raises(ValueError, match='other settings'):
+        _check_index(tmp_path, more)
+    with pytest.raises(ValueError, match='no_markings_share'):
+        dataclasses.replace(bare, no_markings_share=1.5).validate()

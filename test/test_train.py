@@ -144,7 +144,10 @@ def test_shipped_training_configs_load(path):
     cfg = load_config(path)
     train, test = cache_settings(cfg, 'train'), cache_settings(cfg, 'test')
     assert not (test.sensor_variation or test.road_look or test.bare_curbs)  # held out as is
-    assert train.bare_curbs == (path.name == 'train_cpu_barecurbs.yaml')
+    assert train.bare_curbs == (path.name in ('train_cpu_barecurbs.yaml',
+                                              'train_cpu_unmarked.yaml'))
+    assert (train.no_markings_share != test.no_markings_share) == (
+        path.name == 'train_cpu_unmarked.yaml')
 
 
 def test_scenarios_cover_every_sensor_and_topology():

@@ -84,6 +84,7 @@ class CacheSettings:
     sensor_variation: bool = False  # training seeds only: sensor_variation() drawn per seed
     road_look: bool = False  # sensor_variation also draws pavements and mount tilt
     bare_curbs: bool = False  # sensor_variation also draws roads without lines along the curbs
+    no_markings_share: float = NO_MARKINGS_SHARE  # sensor_variation: roads without any paint
 
     def validate(self) -> None:
         unknown = [s for s in self.sensors if s not in SENSORS]
@@ -99,6 +100,9 @@ class CacheSettings:
             raise ValueError('size_px must be >= 1 and resolution_m > 0')
         if self.intensity_encoding not in INTENSITY_ENCODINGS:
             raise ValueError(f'unknown intensity encoding {self.intensity_encoding!r}')
+        if not 0.0 <= self.no_markings_share <= 1.0:
+            raise ValueError(f'no_markings_share must be within 0..1, got '
+                             f'{self.no_markings_share}')
 
     @property
     def sweeps_per_seed(self) -> int:
@@ -122,16 +126,19 @@ def scenario_for_seed(seed: int, settings: CacheSettings = CacheSettings()) -> d
                 'odom_noise': round(drift, 3),
                 'motion_distortion': bool(rng.random() < settings.motion_distortion_prob)}
     if settings.sensor_variation and seed < TEST_SEED_BASE:
-        scenario.update(sensor_variation(seed, settings.road_look, settings.bare_curbs))
+        scenario.update(sensor_variation(seed, settings.road_look, settings.bare_curbs,
+                                         settings.no_markings_share))
     return scenario
 
 
-def sensor_variation(seed: int, road_look: bool = False, bare_curbs: bool = False) -> dict:
+def sensor_variation(seed: int, road_look: bool = False, bare_curbs: bool = False,
+                     no_markings_share: float = NO_MARKINGS_SHARE) -> dict:
     """What real sensors and roads vary, drawn per training seed:
 
     * paint: 60 % worn, beads gone, reflectance WORN_PAINT_RANGE x the asphalt's
-      (log-uniform); else the fresh retro-reflective paint (~15-20x); NO_MARKINGS_SHARE of the
-      roads carry no markings at all
+      (log-uniform); else the fresh retro-reflective paint (~15-20x); no_markings_share of the
+      roads (default NO_MARKINGS_SHARE) carry no markings at all (the same draw: a larger
+      share only unpaints more roads)
     * units: 1/4 each the preset's own, uint16 reflectivity, 0-1 float, 0-255 counts
     * gain: half the seeds x0.25-x4 (log-uniform; integer counts round and saturate)
     * mount: half the seeds 1.4-2.5 m above the road instead of the preset's height
@@ -150,7 +157,7 @@ def sensor_variation(seed: int, road_look: bool = False, bare_curbs: bool = Fals
     gain = _log_uniform(rng, 0.25, 4.0) if rng.random() < 0.5 else 1.0
     mount = float(rng.uniform(1.4, 2.5)) if rng.random() < 0.5 else None
     return {'paint_contrast': round(contrast, 3) if worn else None,
-            'markings': bool(rng.random() >= NO_MARKINGS_SHARE), 'intensity': units,
+            'markings': bool(rng.random() >= no_markings_share), 'intensity': units,
             'intensity_gain': round(gain, 3),
             'mount_z': None if mount is None else round(mount, 3),
             'single_sweep': bool(rng.random() < SINGLE_SWEEP_SHARE),
@@ -290,9 +297,10 @@ def _check_index(out_dir: Path, settings: CacheSettings) -> None:
     for option in ('road_look', 'bare_curbs'):  # caches from before the option stay valid
         if not getattr(settings, option):
             del wanted['settings'][option]
+    del wanted['settings']['no_markings_share']  # recorded under 'variation'
     if settings.sensor_variation:  # its constants shape the shards too
         wanted['variation'] = {'worn_paint_range': list(WORN_PAINT_RANGE),
-                               'no_markings_share': NO_MARKINGS_SHARE,
+                               'no_markings_share': settings.no_markings_share,
                                'single_sweep_share': SINGLE_SWEEP_SHARE}
         if settings.road_look:
             wanted['variation'].update(

@@ -31,7 +31,13 @@ from fhld_ros.dataclass_dict import from_dict
 from fhld_ros.model.config import FhldConfig
 from fhld_ros.training.augment import AugmentParams
 from fhld_ros.training.bag_source import LabelledBag
-from fhld_ros.training.cache import ALL_SENSORS, ALL_TOPOLOGIES, TEST_SEED_BASE, CacheSettings
+from fhld_ros.training.cache import (
+    ALL_SENSORS,
+    ALL_TOPOLOGIES,
+    NO_MARKINGS_SHARE,
+    TEST_SEED_BASE,
+    CacheSettings,
+)
 
 SCHEDULES = ('constant', 'cosine', 'step')
 SECTIONS = ('seed', 'model', 'data', 'augment', 'train')
@@ -56,6 +62,7 @@ class DataSection:
     sensor_variation: bool = False
     road_look: bool = False  # with sensor_variation: pavements (KITTI-like, gutters, seams), tilt
     bare_curbs: bool = False  # with sensor_variation: half the roads without lines at the curbs
+    no_markings_share: float = NO_MARKINGS_SHARE  # with sensor_variation: roads without paint
     cache_workers: int = 2
     # labelled bags as more training windows (module doc; training/bag_source.py), cached in
     # <parent of train_cache>/bags/ by the same --cache-only step
@@ -173,4 +180,5 @@ def cache_settings(cfg: TrainConfig, split: str) -> CacheSettings:
         odom_noise_max=d.odom_noise_max, motion_distortion_prob=d.motion_distortion_prob,
         intensity_encoding=model.intensity_encoding,
         sensor_variation=d.sensor_variation and train, road_look=d.road_look and train,
-        bare_curbs=d.bare_curbs and train)
+        bare_curbs=d.bare_curbs and train,
+        no_markings_share=d.no_markings_share if train else NO_MARKINGS_SHARE)
