@@ -101,8 +101,7 @@ class CacheSettings:
         if self.intensity_encoding not in INTENSITY_ENCODINGS:
             raise ValueError(f'unknown intensity encoding {self.intensity_encoding!r}')
         if not 0.0 <= self.no_markings_share <= 1.0:
-            raise ValueError(f'no_markings_share must be within 0..1, got '
-                             f'{self.no_markings_share}')
+            raise ValueError(f'no_markings_share must be in 0..1, got {self.no_markings_share}')
 
     @property
     def sweeps_per_seed(self) -> int:
@@ -126,19 +125,16 @@ def scenario_for_seed(seed: int, settings: CacheSettings = CacheSettings()) -> d
                 'odom_noise': round(drift, 3),
                 'motion_distortion': bool(rng.random() < settings.motion_distortion_prob)}
     if settings.sensor_variation and seed < TEST_SEED_BASE:
-        scenario.update(sensor_variation(seed, settings.road_look, settings.bare_curbs,
-                                         settings.no_markings_share))
+        scenario.update(sensor_variation(seed, settings))
     return scenario
 
 
-def sensor_variation(seed: int, road_look: bool = False, bare_curbs: bool = False,
-                     no_markings_share: float = NO_MARKINGS_SHARE) -> dict:
-    """What real sensors and roads vary, drawn per training seed:
+def sensor_variation(seed: int, settings: CacheSettings) -> dict:
+    """What real sensors and roads vary, drawn per training seed (settings: which options):
 
     * paint: 60 % worn, beads gone, reflectance WORN_PAINT_RANGE x the asphalt's
-      (log-uniform); else the fresh retro-reflective paint (~15-20x); no_markings_share of the
-      roads (default NO_MARKINGS_SHARE) carry no markings at all (the same draw: a larger
-      share only unpaints more roads)
+      (log-uniform); else fresh retro-reflective paint (~15-20x); no_markings_share of the roads
+      carry no paint at all (one draw per seed: a larger share only unpaints more roads)
     * units: 1/4 each the preset's own, uint16 reflectivity, 0-1 float, 0-255 counts
     * gain: half the seeds x0.25-x4 (log-uniform; integer counts round and saturate)
     * mount: half the seeds 1.4-2.5 m above the road instead of the preset's height
@@ -155,14 +151,13 @@ def sensor_variation(seed: int, road_look: bool = False, bare_curbs: bool = Fals
     contrast = _log_uniform(rng, *WORN_PAINT_RANGE)
     units = (None, *INTENSITY_SCALES)[int(rng.integers(4))]
     gain = _log_uniform(rng, 0.25, 4.0) if rng.random() < 0.5 else 1.0
-    mount = float(rng.uniform(1.4, 2.5)) if rng.random() < 0.5 else None
+    mount = round(float(rng.uniform(1.4, 2.5)), 3) if rng.random() < 0.5 else None
     return {'paint_contrast': round(contrast, 3) if worn else None,
-            'markings': bool(rng.random() >= no_markings_share), 'intensity': units,
-            'intensity_gain': round(gain, 3),
-            'mount_z': None if mount is None else round(mount, 3),
+            'markings': bool(rng.random() >= settings.no_markings_share), 'intensity': units,
+            'intensity_gain': round(gain, 3), 'mount_z': mount,
             'single_sweep': bool(rng.random() < SINGLE_SWEEP_SHARE),
-            **(_road_look(rng) if road_look else {}),
-            **(_bare_curbs(seed) if bare_curbs else {})}
+            **(_road_look(rng) if settings.road_look else {}),
+            **(_bare_curbs(seed) if settings.bare_curbs else {})}
 
 
 def _log_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
