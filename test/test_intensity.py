@@ -18,12 +18,7 @@ from fhld_ros.intensity import (
 from fhld_ros.pipeline import LanePipeline
 from fhld_ros.ros.parameters import DetectorParams
 from fhld_ros.sim.simulator import Simulator
-from fhld_ros.training.cache import (
-    TEST_SEED_BASE,
-    CacheSettings,
-    _check_index,
-    scenario_for_seed,
-)
+from fhld_ros.training.cache import TEST_SEED_BASE, CacheSettings, build_cache, scenario_for_seed
 from fhld_ros.training.samples import training_samples
 
 
@@ -173,8 +168,8 @@ def test_no_markings_share_unpaints_more_of_the_same_roads(tmp_path):
     assert 0.1 < np.mean([not s['markings'] for s in before]) < 0.3
     assert 0.3 < np.mean([not s['markings'] for s in after]) < 0.5
     assert scenario_for_seed(TEST_SEED_BASE, more) == scenario_for_seed(TEST_SEED_BASE)
-    _check_index(tmp_path, bare)  # a cache records the share it was built with
+    build_cache(tmp_path, [], bare, workers=1, progress=False)  # the index records the share
     with pytest.raises(ValueError, match='other settings'):
-        _check_index(tmp_path, more)
+        build_cache(tmp_path, [], more, workers=1, progress=False)
     with pytest.raises(ValueError, match='no_markings_share'):
         dataclasses.replace(bare, no_markings_share=1.5).validate()
