@@ -156,20 +156,33 @@ def test_bare_curbs_draws_roads_without_edge_lines_and_leaves_the_rest():
     assert scenario_for_seed(TEST_SEED_BASE, bare) == scenario_for_seed(TEST_SEED_BASE)
 
 
-def test_no_markings_share_unpaints_more_of_the_same_roads(tmp_path):
+# each share: the key it sets, what it turns the key into, the default share's fraction
+SHARE_KEYS = {'no_markings_share': ('markings', False, 0.2),
+              'single_sweep_share': ('single_sweep', True, 0.2),
+              'bright_asphalt_share': ('asphalt_rho', 'set', 0.35)}
+
+
+@pytest.mark.parametrize('share', sorted(SHARE_KEYS))
+def test_a_larger_share_changes_more_of_the_same_seeds_and_nothing_else(share, tmp_path):
+    key, changed, default = SHARE_KEYS[share]
     bare = CacheSettings(sensor_variation=True, road_look=True, bare_curbs=True)
-    more = dataclasses.replace(bare, no_markings_share=0.4)
+    more = dataclasses.replace(bare, **{share: 0.6})
+
+    def hit(scenario: dict) -> bool:
+        return scenario[key] is not None if changed == 'set' else scenario[key] == changed
     before = [scenario_for_seed(seed, bare) for seed in range(300)]
     after = [scenario_for_seed(seed, more) for seed in range(300)]
-    for old, new in zip(before, after):  # only 'markings' changes, and only true -> false
-        assert {k: v for k, v in old.items() if k != 'markings'} == \
-            {k: v for k, v in new.items() if k != 'markings'}
-        assert new['markings'] <= old['markings']
-    assert 0.1 < np.mean([not s['markings'] for s in before]) < 0.3
-    assert 0.3 < np.mean([not s['markings'] for s in after]) < 0.5
+    for old, new in zip(before, after):  # only the share's key changes, and only towards it
+        assert {k: v for k, v in old.items() if k != key} == \
+            {k: v for k, v in new.items() if k != key}
+        assert hit(new) >= hit(old)
+        if changed == 'set' and hit(old):  # the value drawn stays put
+            assert new[key] == old[key]
+    assert default - 0.1 < np.mean([hit(s) for s in before]) < default + 0.1
+    assert 0.5 < np.mean([hit(s) for s in after]) < 0.7
     assert scenario_for_seed(TEST_SEED_BASE, more) == scenario_for_seed(TEST_SEED_BASE)
     build_cache(tmp_path, [], bare, workers=1, progress=False)  # the index records the share
     with pytest.raises(ValueError, match='other settings'):
         build_cache(tmp_path, [], more, workers=1, progress=False)
-    with pytest.raises(ValueError, match='no_markings_share'):
-        dataclasses.replace(bare, no_markings_share=1.5).validate()
+    with pytest.raises(ValueError, match=share):
+        dataclasses.replace(bare, **{share: 1.5}).validate()

@@ -42,6 +42,7 @@ from fhld_ros.training.config import cache_settings, load_config
 from fhld_ros.training.dataset import CacheDataset, collate
 from fhld_ros.training.loop import init_weights
 from fhld_ros.training.samples import training_samples
+from fhld_ros.training.variation import SHARES
 
 pytestmark = pytest.mark.usefixtures('one_torch_thread')
 
@@ -144,10 +145,10 @@ def test_shipped_training_configs_load(path):
     cfg = load_config(path)
     train, test = cache_settings(cfg, 'train'), cache_settings(cfg, 'test')
     assert not (test.sensor_variation or test.road_look or test.bare_curbs)  # held out as is
-    assert train.bare_curbs == (path.name in ('train_cpu_barecurbs.yaml',
-                                              'train_cpu_unmarked.yaml'))
-    assert (train.no_markings_share != test.no_markings_share) == (
-        path.name == 'train_cpu_unmarked.yaml')
+    reshared = ('train_cpu_unmarked.yaml', 'train_cpu_sparse_bright.yaml')
+    assert train.bare_curbs == (path.name in ('train_cpu_barecurbs.yaml', *reshared))
+    assert (train.no_markings_share != test.no_markings_share) == (path.name in reshared)
+    assert test == dataclasses.replace(test, **SHARES)  # the test cache keeps the defaults
 
 
 def test_scenarios_cover_every_sensor_and_topology():

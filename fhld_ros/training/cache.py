@@ -43,27 +43,23 @@ from fhld_ros.bev import BevSpec
 from fhld_ros.dataclass_dict import to_plain
 from fhld_ros.intensity import CONTRAST, INTENSITY_ENCODINGS
 from fhld_ros.sim.layout import TOPOLOGIES
-from fhld_ros.sim.lidar import INTENSITY_SCALES, SENSORS, SPINNING
+from fhld_ros.sim.lidar import SENSORS, SPINNING
 from fhld_ros.sim.simulator import Simulator
 from fhld_ros.training.samples import TrainingSample, training_samples
+from fhld_ros.training.variation import (
+    NO_MARKINGS_SHARE,
+    ROAD_LOOK_SHARE,
+    SHARES,
+    SINGLE_SWEEP_SHARE,
+    sensor_variation,
+    variation_record,
+)
 
 SHARD_FORMAT = 1
 SAMPLE_OPTIONS = ('intensity_gain', 'single_sweep')  # scenario keys that are not Simulator's
 TEST_SEED_BASE = 1_000_000
 ALL_SENSORS: tuple[str, ...] = SPINNING
 ALL_TOPOLOGIES: tuple[str | None, ...] = (None, *TOPOLOGIES)  # None: the layout's own events
-# sensor_variation: below ~1.6x, worn simulated paint is lost in the asphalt's own patches
-# (+-25 %), and lanes taught there were drawn on unmarked roads too (docs/training.md)
-WORN_PAINT_RANGE = (1.6, 8.0)
-NO_MARKINGS_SHARE = 0.2
-SINGLE_SWEEP_SHARE = 0.2
-BRIGHT_ASPHALT_RANGE = (0.16, 0.32)  # KITTI-like pavement (the usual one: 0.07-0.14)
-GUTTER_RATIO_RANGE = (0.6, 2.5)  # a light or dark strip along the curbs, x the pavement
-MOUNT_TILT_DEG = 3.0
-ROAD_LOOK_SHARE = 0.35  # each of bright pavement, gutters and seams on this share of seeds
-# with every simulated marked road painting a line just inside its curbs, the model learnt
-# "curb => lane line" and drew lanes along bare real curbs (docs/training.md)
-BARE_CURB_SHARE = 0.5
 INDEX_NAME = 'cache.json'
 
 
@@ -84,7 +80,11 @@ class CacheSettings:
     sensor_variation: bool = False  # training seeds only: sensor_variation() drawn per seed
     road_look: bool = False  # sensor_variation also draws pavements and mount tilt
     bare_curbs: bool = False  # sensor_variation also draws roads without lines along the curbs
-    no_markings_share: float = NO_MARKINGS_SHARE  # sensor_variation: roads without any paint
+    # sensor_variation's shares of the seeds (variation.py): roads without any paint, windows of
+    # one sweep without odometry, KITTI-like bright pavement (with road_look)
+    no_markings_share: float = NO_MARKINGS_SHARE
+    single_sweep_share: float = SINGLE_SWEEP_SHARE
+    bright_asphalt_share: float = ROAD_LOOK_SHARE
 
     def validate(self) -> None:
         unknown = [s for s in self.sensors if s not in SENSORS]
@@ -100,8 +100,9 @@ class CacheSettings:
             raise ValueError('size_px must be >= 1 and resolution_m > 0')
         if self.intensity_encoding not in INTENSITY_ENCODINGS:
             raise ValueError(f'unknown intensity encoding {self.intensity_encoding!r}')
-        if not 0.0 <= self.no_markings_share <= 1.0:
-            raise ValueError(f'no_markings_share must be in 0..1, got {self.no_markings_share}')
+        for name in SHARES:
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f'{name} must be in 0..1, got {getattr(self, name)}')
 
     @property
     def sweeps_per_seed(self) -> int:
@@ -127,59 +128,6 @@ def scenario_for_seed(seed: int, settings: CacheSettings = CacheSettings()) -> d
     if settings.sensor_variation and seed < TEST_SEED_BASE:
         scenario.update(sensor_variation(seed, settings))
     return scenario
-
-
-def sensor_variation(seed: int, settings: CacheSettings) -> dict:
-    """What real sensors and roads vary, drawn per training seed (settings: which options):
-
-    * paint: 60 % worn, beads gone, reflectance WORN_PAINT_RANGE x the asphalt's
-      (log-uniform); else fresh retro-reflective paint (~15-20x); no_markings_share of the roads
-      carry no paint at all (one draw per seed: a larger share only unpaints more roads)
-    * units: 1/4 each the preset's own, uint16 reflectivity, 0-1 float, 0-255 counts
-    * gain: half the seeds x0.25-x4 (log-uniform; integer counts round and saturate)
-    * mount: half the seeds 1.4-2.5 m above the road instead of the preset's height
-    * SINGLE_SWEEP_SHARE of the seeds: windows of one sweep without odometry (the cloud frame,
-      as the node runs without /odom), ending where the accumulated windows would
-    * with road_look, each on ROAD_LOOK_SHARE of the seeds (sim.scene.RoadLook): KITTI-like
-      bright pavement, gutters along the paved edges, sealed seams and joints; half the
-      seeds: the sensor tilted up to MOUNT_TILT_DEG in pitch and roll
-    * with bare_curbs, BARE_CURB_SHARE of the seeds: no edge lines (the lanes run to the curb;
-      its own stream of draws, so the draws above stay put)
-    """
-    rng = np.random.default_rng(np.random.SeedSequence([seed, 0x5E75]))
-    worn = rng.random() < 0.6
-    contrast = _log_uniform(rng, *WORN_PAINT_RANGE)
-    units = (None, *INTENSITY_SCALES)[int(rng.integers(4))]
-    gain = _log_uniform(rng, 0.25, 4.0) if rng.random() < 0.5 else 1.0
-    mount = round(float(rng.uniform(1.4, 2.5)), 3) if rng.random() < 0.5 else None
-    return {'paint_contrast': round(contrast, 3) if worn else None,
-            'markings': bool(rng.random() >= settings.no_markings_share), 'intensity': units,
-            'intensity_gain': round(gain, 3), 'mount_z': mount,
-            'single_sweep': bool(rng.random() < SINGLE_SWEEP_SHARE),
-            **(_road_look(rng) if settings.road_look else {}),
-            **(_bare_curbs(seed) if settings.bare_curbs else {})}
-
-
-def _log_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
-    return float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
-
-
-def _road_look(rng: np.random.Generator) -> dict:
-    """sensor_variation's pavement and mount draws (after its older ones, which stay put)."""
-    bright = rng.random() < ROAD_LOOK_SHARE
-    asphalt = round(_log_uniform(rng, *BRIGHT_ASPHALT_RANGE), 3)
-    gutter = rng.random() < ROAD_LOOK_SHARE
-    ratio = round(_log_uniform(rng, *GUTTER_RATIO_RANGE), 3)
-    seams = bool(rng.random() < ROAD_LOOK_SHARE)
-    tilt = rng.uniform(-MOUNT_TILT_DEG, MOUNT_TILT_DEG, 2) * (rng.random() < 0.5)
-    return {'asphalt_rho': asphalt if bright else None, 'gutter_ratio': ratio if gutter else None,
-            'seams': seams, 'mount_pitch_deg': round(float(tilt[0]), 2) + 0.0,
-            'mount_roll_deg': round(float(tilt[1]), 2) + 0.0}
-
-
-def _bare_curbs(seed: int) -> dict:
-    rng = np.random.default_rng(np.random.SeedSequence([seed, 0xC0B5]))
-    return {'edge_lines': bool(rng.random() >= BARE_CURB_SHARE)}
 
 
 def single_sweep_windows(settings: CacheSettings) -> dict:
@@ -292,18 +240,10 @@ def _check_index(out_dir: Path, settings: CacheSettings) -> None:
     for option in ('road_look', 'bare_curbs'):  # caches from before the option stay valid
         if not getattr(settings, option):
             del wanted['settings'][option]
-    del wanted['settings']['no_markings_share']  # recorded under 'variation'
+    for name in SHARES:  # recorded under 'variation'
+        del wanted['settings'][name]
     if settings.sensor_variation:  # its constants shape the shards too
-        wanted['variation'] = {'worn_paint_range': list(WORN_PAINT_RANGE),
-                               'no_markings_share': settings.no_markings_share,
-                               'single_sweep_share': SINGLE_SWEEP_SHARE}
-        if settings.road_look:
-            wanted['variation'].update(
-                bright_asphalt_range=list(BRIGHT_ASPHALT_RANGE),
-                gutter_ratio_range=list(GUTTER_RATIO_RANGE), mount_tilt_deg=MOUNT_TILT_DEG,
-                road_look_share=ROAD_LOOK_SHARE)
-        if settings.bare_curbs:
-            wanted['variation']['bare_curb_share'] = BARE_CURB_SHARE
+        wanted['variation'] = variation_record(settings)
     if index.exists():
         stored = json.loads(index.read_text())
         if stored != wanted:

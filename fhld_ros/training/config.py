@@ -34,10 +34,10 @@ from fhld_ros.training.bag_source import LabelledBag
 from fhld_ros.training.cache import (
     ALL_SENSORS,
     ALL_TOPOLOGIES,
-    NO_MARKINGS_SHARE,
     TEST_SEED_BASE,
     CacheSettings,
 )
+from fhld_ros.training.variation import SHARES
 
 SCHEDULES = ('constant', 'cosine', 'step')
 SECTIONS = ('seed', 'model', 'data', 'augment', 'train')
@@ -62,7 +62,11 @@ class DataSection:
     sensor_variation: bool = False
     road_look: bool = False  # with sensor_variation: pavements (KITTI-like, gutters, seams), tilt
     bare_curbs: bool = False  # with sensor_variation: half the roads without lines at the curbs
-    no_markings_share: float = NO_MARKINGS_SHARE  # with sensor_variation: roads without paint
+    # with sensor_variation, shares of the training seeds (training/variation.py): roads
+    # without paint, single sweeps without odometry, KITTI-like bright pavement (road_look)
+    no_markings_share: float = SHARES['no_markings_share']
+    single_sweep_share: float = SHARES['single_sweep_share']
+    bright_asphalt_share: float = SHARES['bright_asphalt_share']
     cache_workers: int = 2
     # labelled bags as more training windows (module doc; training/bag_source.py), cached in
     # <parent of train_cache>/bags/ by the same --cache-only step
@@ -181,4 +185,4 @@ def cache_settings(cfg: TrainConfig, split: str) -> CacheSettings:
         intensity_encoding=model.intensity_encoding,
         sensor_variation=d.sensor_variation and train, road_look=d.road_look and train,
         bare_curbs=d.bare_curbs and train,
-        no_markings_share=d.no_markings_share if train else NO_MARKINGS_SHARE)
+        **{name: getattr(d, name) if train else default for name, default in SHARES.items()})
