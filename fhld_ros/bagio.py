@@ -211,7 +211,8 @@ def write_file_atomically(path: str | Path, write: Callable[[Path], None]) -> No
 
 
 class BagWriter:
-    """Context manager writing a rosbag2 MCAP bag: ``write(topic, msgtype, stamp_ns, msg)``.
+    """Context manager writing a rosbag2 MCAP bag: ``write(topic, msgtype, stamp_ns, msg)``,
+    msg a rosbags message or its CDR bytes.
 
     The output is checked with `check_output` (overwrite, inputs) on entry, and again before
     the finished bag replaces an existing one (it may have changed meanwhile)."""
@@ -243,7 +244,7 @@ class BagWriter:
             self._connections[topic] = connection
         elif connection.msgtype != msgtype:
             raise BagError(f'topic {topic} is {connection.msgtype}, not {msgtype}')
-        data = self.family.typestore.serialize_cdr(msg, msgtype)
+        data = msg if isinstance(msg, bytes) else self.family.typestore.serialize_cdr(msg, msgtype)
         self._writer.write(connection, int(stamp_ns), data)
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from msg_adapters.cdr import ENCAPSULATION_CDR_LE, CdrWriter
 from msg_adapters.family import MessageFamily, stamp_to_ns
 
 LANES_NS = 'lanes'
@@ -39,9 +40,35 @@ class LaneSet:
     window_outline: np.ndarray | None = None  # (5, 3) closed polygon
 
 
-def _points(family: MessageFamily, xyz: np.ndarray) -> list:
-    return [family.new('geometry_msgs/msg/Point', x=x, y=y, z=z)
-            for x, y, z in np.asarray(xyz, dtype=np.float64).tolist()]
+@dataclass(frozen=True)
+class _Strip:
+    """One LINE_STRIP marker of a /lanes message."""
+
+    ns: str
+    marker_id: int
+    xyz: np.ndarray  # (K, 3) float64
+    rgba: tuple[float, float, float, float]
+    text: str = ''
+
+
+def _strips(lanes: Sequence[np.ndarray], confidences: Sequence[float], ids: Sequence[int],
+            window_outline: np.ndarray | None) -> list[_Strip]:
+    """The LINE_STRIPs of a /lanes message (after its DELETEALL marker), in order."""
+    if not len(lanes) == len(confidences) == len(ids):
+        raise ValueError(f'{len(lanes)} lanes, {len(confidences)} confidences and {len(ids)} '
+                         'ids must match')
+    strips = []
+    for lane, conf, lane_id in zip(lanes, confidences, ids):
+        conf = float(np.clip(conf, 0.0, 1.0))
+        r, g, b = (float(v) for v in PALETTE[int(lane_id) % len(PALETTE)])
+        strips.append(_Strip(LANES_NS, int(lane_id), np.asarray(lane, dtype=np.float64),
+                             (r, g, b, conf), f'conf={conf:.2f}'))
+    if window_outline is not None:
+        outline = np.asarray(window_outline, dtype=np.float64)
+        if outline.shape != (5, 3):
+            raise ValueError(f'window outline must be (5, 3), got {outline.shape}')
+        strips.append(_Strip(WINDOW_NS, 0, outline, (0.6, 0.6, 0.6, 0.8)))
+    return strips
 
 
 def _identity_pose(family: MessageFamily) -> Any:
@@ -49,37 +76,65 @@ def _identity_pose(family: MessageFamily) -> Any:
                       orientation=family.new('geometry_msgs/msg/Quaternion', w=1.0))
 
 
-def _line_strip(family: MessageFamily, header: Any, ns: str, marker_id: int, xyz: np.ndarray,
-                rgba: Sequence[float], text: str = '') -> Any:
-    r, g, b, a = (float(v) for v in rgba)
+def _line_strip(family: MessageFamily, header: Any, strip: _Strip) -> Any:
+    r, g, b, a = strip.rgba
+    points = [family.new('geometry_msgs/msg/Point', x=x, y=y, z=z)
+              for x, y, z in strip.xyz.tolist()]
     return family.new(
-        'visualization_msgs/msg/Marker', header=header, ns=ns, id=int(marker_id),
+        'visualization_msgs/msg/Marker', header=header, ns=strip.ns, id=strip.marker_id,
         type=LINE_STRIP, action=ADD, pose=_identity_pose(family),
         scale=family.new('geometry_msgs/msg/Vector3', x=LINE_WIDTH_M),
         color=family.new('std_msgs/msg/ColorRGBA', r=r, g=g, b=b, a=a),
-        points=_points(family, xyz), text=text)
+        points=points, text=strip.text)
 
 
 def lanes_to_marker_array(family: MessageFamily, header: Any, lanes: Sequence[np.ndarray],
                           confidences: Sequence[float], ids: Sequence[int],
                           window_outline: np.ndarray | None = None) -> Any:
     """MarkerArray of the §3 contract; `window_outline` (5, 3) adds the bev_window strip."""
-    if not len(lanes) == len(confidences) == len(ids):
-        raise ValueError(f'{len(lanes)} lanes, {len(confidences)} confidences and {len(ids)} '
-                         'ids must match')
+    strips = _strips(lanes, confidences, ids, window_outline)
     markers = [family.new('visualization_msgs/msg/Marker', header=header, ns=LANES_NS,
                           action=DELETEALL, pose=_identity_pose(family))]
-    for lane, conf, lane_id in zip(lanes, confidences, ids):
-        conf = float(np.clip(conf, 0.0, 1.0))
-        rgb = PALETTE[int(lane_id) % len(PALETTE)]
-        markers.append(_line_strip(family, header, LANES_NS, lane_id, lane, (*rgb, conf),
-                                   f'conf={conf:.2f}'))
-    if window_outline is not None:
-        outline = np.asarray(window_outline, dtype=np.float64)
-        if outline.shape != (5, 3):
-            raise ValueError(f'window outline must be (5, 3), got {outline.shape}')
-        markers.append(_line_strip(family, header, WINDOW_NS, 0, outline, (0.6, 0.6, 0.6, 0.8)))
+    markers += [_line_strip(family, header, strip) for strip in strips]
     return family.new('visualization_msgs/msg/MarkerArray', markers=markers)
+
+
+def lanes_to_marker_array_cdr(stamp_ns: int, frame_id: str, lanes: Sequence[np.ndarray],
+                              confidences: Sequence[float], ids: Sequence[int],
+                              window_outline: np.ndarray | None = None) -> bytes:
+    """lanes_to_marker_array's message as CDR bytes (what rclpy and rosbag2 send and store)."""
+    strips = _strips(lanes, confidences, ids, window_outline)
+    out = CdrWriter()
+    out.pack('I', len(strips) + 1)
+    _marker_cdr(out, stamp_ns, frame_id, _Strip(LANES_NS, 0, np.zeros((0, 3)), (0, 0, 0, 0)),
+                DELETEALL)
+    for strip in strips:
+        _marker_cdr(out, stamp_ns, frame_id, strip, ADD)
+    return out.getvalue()
+
+
+def _marker_cdr(out: CdrWriter, stamp_ns: int, frame_id: str, strip: _Strip, action: int
+                ) -> None:
+    """visualization_msgs/Marker: a LINE_STRIP (ADD) or DELETEALL, every other field empty."""
+    out.header(stamp_ns, frame_id)
+    out.string(strip.ns)
+    out.pack('iii', strip.marker_id, LINE_STRIP if action == ADD else 0, action)
+    out.pack('7d', 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)  # pose: identity
+    out.pack('3d', LINE_WIDTH_M if action == ADD else 0.0, 0.0, 0.0)  # scale
+    out.pack('4f', *strip.rgba)
+    out.pack('iI?', 0, 0, False)  # lifetime, frame_locked
+    out.pack('I', len(strip.xyz))
+    out.array(strip.xyz, '<f8')  # points
+    out.pack('I', 0)  # colors
+    out.string('')  # texture_resource
+    out.header(0, '')  # texture: sensor_msgs/CompressedImage
+    out.string('')
+    out.pack('I', 0)
+    out.pack('I', 0)  # uv_coordinates
+    out.string(strip.text)
+    out.string('')  # mesh_resource
+    out.string('')  # mesh_file: visualization_msgs/MeshFile
+    out.pack('I?', 0, False)  # its data, then mesh_use_embedded_materials
 
 
 def unique_marker_ids(ids: Sequence[int]) -> list[int]:
@@ -128,22 +183,51 @@ def marker_array_to_lanes(msg: Any) -> LaneSet:
     return result
 
 
+def _path_poses(lane: np.ndarray | None) -> np.ndarray:
+    """(K, 7) x, y, z, qx, qy, qz, qw: a lane's points, each heading along the lane (the last
+    keeps the last segment's heading)."""
+    if lane is None or len(lane) == 0:
+        return np.zeros((0, 7))
+    xyz = np.asarray(lane, dtype=np.float64)
+    step = np.diff(xyz[:, :2], axis=0) if len(xyz) > 1 else np.zeros((0, 2))
+    step = np.vstack([step, step[-1:] if len(step) else [[1.0, 0.0]]])
+    half = np.arctan2(step[:, 1], step[:, 0]) / 2
+    zeros = np.zeros(len(xyz))
+    return np.column_stack([xyz, zeros, zeros, np.sin(half), np.cos(half)])
+
+
 def lane_to_path(family: MessageFamily, header: Any, lane: np.ndarray | None) -> Any:
     """nav_msgs/Path through a lane's points, each pose heading along the lane; empty if None."""
-    if lane is None or len(lane) == 0:
-        return family.new('nav_msgs/msg/Path', header=header, poses=[])
-    xyz = np.asarray(lane, dtype=np.float64)
-    step = np.diff(xyz[:, :2], axis=0) if len(xyz) > 1 else np.array([[1.0, 0.0]])
-    step = np.vstack([step, step[-1:]])  # the last point keeps the last segment's heading
-    half = np.arctan2(step[:, 1], step[:, 0]) / 2
     poses = []
-    for (x, y, z), qz, qw in zip(xyz.tolist(), np.sin(half).tolist(), np.cos(half).tolist()):
+    for x, y, z, _, _, qz, qw in _path_poses(lane).tolist():
         pose = family.new(
             'geometry_msgs/msg/Pose',
             position=family.new('geometry_msgs/msg/Point', x=x, y=y, z=z),
             orientation=family.new('geometry_msgs/msg/Quaternion', z=qz, w=qw))
         poses.append(family.new('geometry_msgs/msg/PoseStamped', header=header, pose=pose))
     return family.new('nav_msgs/msg/Path', header=header, poses=poses)
+
+
+def lane_to_path_cdr(stamp_ns: int, frame_id: str, lane: np.ndarray | None) -> bytes:
+    """lane_to_path's message as CDR bytes."""
+    out = CdrWriter()
+    out.header(stamp_ns, frame_id)
+    poses = _path_poses(lane)
+    out.pack('I', len(poses))
+    if len(poses) == 0:
+        return out.getvalue()
+    out.header(stamp_ns, frame_id)  # geometry_msgs/PoseStamped
+    out.array(poses[0], '<f8')
+    # The poses end 8-aligned, so every later PoseStamped has the same bytes before its pose.
+    head = CdrWriter()
+    head.header(stamp_ns, frame_id)
+    head.align(8)
+    prefix = np.frombuffer(head.getvalue()[len(ENCAPSULATION_CDR_LE):], dtype=np.uint8)
+    rows = np.empty((len(poses) - 1, prefix.size + 56), dtype=np.uint8)
+    rows[:, :prefix.size] = prefix
+    rows[:, prefix.size:] = np.ascontiguousarray(poses[1:], dtype='<f8').view(np.uint8)
+    out.array(rows, 'u1')
+    return out.getvalue()
 
 
 def marker_array_stamp_ns(raw: bytes) -> int:

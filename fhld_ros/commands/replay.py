@@ -20,7 +20,7 @@ from fhld_ros.errors import ConfigError
 from fhld_ros.pipeline import LanePipeline
 from fhld_ros.ros.parameters import DetectorParams, load_params_yaml
 from msg_adapters.family import stamp_to_ns
-from msg_adapters.lanes import lane_to_path, lanes_to_marker_array
+from msg_adapters.lanes import lane_to_path_cdr, lanes_to_marker_array_cdr
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -60,16 +60,13 @@ def replay(in_bag: Path, out_bag: Path, params: DetectorParams, points_topic: st
     bar = tqdm(total=sum(counts[t] for t in topics), unit='msg', disable=not progress,
                desc='replay', file=sys.stderr)
     with BagWriter(out_bag, overwrite, inputs) as writer:
-        family = writer.family
-
         def publish(out) -> None:
-            header = family.header(out.stamp_ns, out.frame_id)
             writer.write(lanes_topic, 'visualization_msgs/msg/MarkerArray', out.stamp_ns,
-                         lanes_to_marker_array(family, header, out.lanes, out.confidences,
-                                               out.ids, out.outline))
+                         lanes_to_marker_array_cdr(out.stamp_ns, out.frame_id, out.lanes,
+                                                   out.confidences, out.ids, out.outline))
             for side, lane in (('ego_left', out.ego_left), ('ego_right', out.ego_right)):
                 writer.write(f'{lanes_topic}/{side}', 'nav_msgs/msg/Path', out.stamp_ns,
-                             lane_to_path(family, header, lane))
+                             lane_to_path_cdr(out.stamp_ns, out.frame_id, lane))
             stats['detections'] += 1
 
         def timer() -> None:

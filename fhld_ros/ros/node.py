@@ -40,7 +40,7 @@ from fhld_ros.ros.diagnostics import NodeStats
 from fhld_ros.ros.executor import HandoffExecutor
 from fhld_ros.ros.parameters import DetectorParams, type_problem
 from msg_adapters.family import rclpy_family, stamp_to_ns
-from msg_adapters.lanes import lane_to_path, lanes_to_marker_array
+from msg_adapters.lanes import lane_to_path_cdr, lanes_to_marker_array_cdr
 
 WARN_THROTTLE_SEC = 5.0
 QOS_CHECK_SEC = 1.0
@@ -279,11 +279,11 @@ class LaneDetectorNode(Node):
             rastered = time.monotonic()
             out = self.pipeline.detect_window(window)
             detected = time.monotonic()
-            header = FAMILY.header(out.stamp_ns, out.frame_id)
-            self.lanes_pub.publish(lanes_to_marker_array(
-                FAMILY, header, out.lanes, out.confidences, out.ids, out.outline))
-            self.left_pub.publish(lane_to_path(FAMILY, header, out.ego_left))
-            self.right_pub.publish(lane_to_path(FAMILY, header, out.ego_right))
+            # CDR bytes written from the arrays: ~10x faster than building rclpy messages
+            self.lanes_pub.publish(lanes_to_marker_array_cdr(
+                out.stamp_ns, out.frame_id, out.lanes, out.confidences, out.ids, out.outline))
+            self.left_pub.publish(lane_to_path_cdr(out.stamp_ns, out.frame_id, out.ego_left))
+            self.right_pub.publish(lane_to_path_cdr(out.stamp_ns, out.frame_id, out.ego_right))
             self.stats.detection_done(out.stamp_ns, start, rastered, detected, time.monotonic(),
                                       odometry_timed_out=timed_out)
             return True
