@@ -58,7 +58,7 @@ class DataSection:
     topologies: tuple[str | None, ...] = ALL_TOPOLOGIES
     odom_noise_max: float = 1.0
     motion_distortion_prob: float = 0.25
-    # training seeds draw sensor and road variation (cache.sensor_variation); held-out never
+    # training seeds draw sensor and road variation (variation.sensor_variation); held-out never
     sensor_variation: bool = False
     road_look: bool = False  # with sensor_variation: pavements (KITTI-like, gutters, seams), tilt
     bare_curbs: bool = False  # with sensor_variation: half the roads without lines at the curbs
