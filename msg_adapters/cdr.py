@@ -6,7 +6,8 @@ the CDR bytes directly (rclpy publishes bytes as they are, rosbag2 stores them) 
 of that. The layout is the XCDR1 plain little-endian encoding Fast DDS and rosbags write: a
 4-byte encapsulation header, then each primitive aligned to its size relative to the end of
 the header, strings as uint32 length (with the NUL) + bytes + NUL, sequences as uint32 count +
-elements. Messages written here are checked byte for byte against rclpy's serialize_message.
+elements. Messages written here are checked byte for byte against rosbags' serialisation of
+the same message (rclpy leaves its padding bytes uninitialised) and read back with rclpy.
 """
 from __future__ import annotations
 

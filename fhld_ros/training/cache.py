@@ -46,14 +46,7 @@ from fhld_ros.sim.layout import TOPOLOGIES
 from fhld_ros.sim.lidar import SENSORS, SPINNING
 from fhld_ros.sim.simulator import Simulator
 from fhld_ros.training.samples import TrainingSample, training_samples
-from fhld_ros.training.variation import (
-    NO_MARKINGS_SHARE,
-    ROAD_LOOK_SHARE,
-    SHARES,
-    SINGLE_SWEEP_SHARE,
-    sensor_variation,
-    variation_record,
-)
+from fhld_ros.training.variation import SHARES, sensor_variation, variation_record
 
 SHARD_FORMAT = 1
 SAMPLE_OPTIONS = ('intensity_gain', 'single_sweep')  # scenario keys that are not Simulator's
@@ -82,9 +75,9 @@ class CacheSettings:
     bare_curbs: bool = False  # sensor_variation also draws roads without lines along the curbs
     # sensor_variation's shares of the seeds (variation.py): roads without any paint, windows of
     # one sweep without odometry, KITTI-like bright pavement (with road_look)
-    no_markings_share: float = NO_MARKINGS_SHARE
-    single_sweep_share: float = SINGLE_SWEEP_SHARE
-    bright_asphalt_share: float = ROAD_LOOK_SHARE
+    no_markings_share: float = SHARES['no_markings_share']
+    single_sweep_share: float = SHARES['single_sweep_share']
+    bright_asphalt_share: float = SHARES['bright_asphalt_share']
 
     def validate(self) -> None:
         unknown = [s for s in self.sensors if s not in SENSORS]
