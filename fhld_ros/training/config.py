@@ -92,6 +92,9 @@ class TrainSection:
     # a checkpoint whose weights start the run (fine-tuning); '' = random initialisation.
     # Only the weights: the model section must build the same layers; a resume ignores it
     init: str = ''
+    # a checkpoint to distil (training/distill.py): the model section's global branch learns
+    # its outputs, every other layer is copied from it and frozen; '' = train on the labels
+    teacher: str = ''
 
 
 @dataclass(frozen=True)
@@ -149,6 +152,9 @@ def load_config(path: str | os.PathLike) -> TrainConfig:
 def _check(t: TrainSection, d: DataSection) -> None:
     if t.schedule not in SCHEDULES:
         raise ValueError(f'train.schedule must be one of {", ".join(SCHEDULES)}')
+    if t.init and t.teacher:
+        raise ValueError('train.init and train.teacher exclude each other: a distillation '
+                         'starts from its teacher')
     if t.iterations < 1 or t.batch_size < 1 or t.eval_every < 1 or t.ckpt_every < 1:
         raise ValueError('train.iterations, batch_size, eval_every, ckpt_every must be >= 1')
     for name in ('train_seeds', 'test_seeds'):

@@ -41,6 +41,7 @@ from fhld_ros.training.dataset import (
     training_sampler,
     training_set,
 )
+from fhld_ros.training.distill import Teacher
 from fhld_ros.training.distributed import Dist, any_rank, barrier, setup_distributed
 from fhld_ros.training.resume import RunState, rank_seed, resume_run, save_run
 from fhld_ros.training.runlog import LossMeter, RunLog
@@ -112,6 +113,7 @@ class Run:
     opt: torch.optim.Optimizer
     criterion: FhldCriterion
     state: RunState
+    teacher: Teacher | None = None  # train.teacher: a distillation (training/distill.py)
     skipped: int = 0  # steps skipped for a non-finite gradient norm
 
     def save(self, name: str, with_state: bool) -> None:
@@ -135,11 +137,16 @@ def start_run(cfg: TrainConfig, out_dir: Path, dist: Dist, resume: bool, command
     resuming = resume and (out_dir / 'last.pt').exists()
     if t.init and not resuming:
         init_weights(module, t.init)
+    if t.teacher and dist.world > 1:
+        raise ValueError('train.teacher: a distillation runs in one process')
+    teacher = Teacher(t.teacher, module, copy_weights=not resuming) if t.teacher else None
     if resuming:
         state = resume_run(out_dir / 'last.pt', module, opt, model_cfg, cfg.seed, dist)
         if dist.main:
             print(f'resuming {out_dir / "last.pt"} at iteration {state.iteration}',
                   file=sys.stderr)
+    if teacher is not None:
+        state.teacher = teacher.provenance
     state.commands.append(command)
     if dist.device.type == 'cuda':
         torch.backends.cuda.matmul.allow_tf32 = True
@@ -147,7 +154,7 @@ def start_run(cfg: TrainConfig, out_dir: Path, dist: Dist, resume: bool, command
     model = (DistributedDataParallel(module, device_ids=[dist.device.index]
                                      if dist.device.type == 'cuda' else None)
              if dist.world > 1 else module)
-    return Run(cfg, dist, out_dir, module, model, opt, FhldCriterion(model_cfg), state)
+    return Run(cfg, dist, out_dir, module, model, opt, FhldCriterion(model_cfg), state, teacher)
 
 
 def init_weights(module: FhldDetector, path: str) -> None:
@@ -248,15 +255,19 @@ def train_step(run: Run, it: int, batch: dict, lr: float) -> dict[str, Tensor]:
     """One optimisation step on one batch; its losses, still on the device."""
     for group in run.opt.param_groups:
         group['lr'] = lr
-    run.module.train()
     raster = batch['raster'].to(run.dist.device, non_blocking=True)
     if 'theta' in batch:  # augmentation deferred to the device (datasets())
         raster = warp_rasters(raster, batch['theta'].to(run.dist.device),
                               run.module.cfg.size_px)
-    outputs = run.model(raster, targets=batch['lanes'])
-    losses = run.criterion(outputs, batch['lanes'], it)
     run.opt.zero_grad(set_to_none=True)
-    (losses['loss'] + graph_anchor(outputs)).backward()
+    if run.teacher is not None:
+        losses = run.teacher.losses(run.module, raster)
+        losses['loss'].backward()
+    else:
+        run.module.train()
+        outputs = run.model(raster, targets=batch['lanes'])
+        losses = run.criterion(outputs, batch['lanes'], it)
+        (losses['loss'] + graph_anchor(outputs)).backward()
     clip = run.cfg.train.grad_clip
     norm = torch.nn.utils.clip_grad_norm_(run.module.parameters(),
                                           clip if clip > 0 else math.inf)

@@ -3,10 +3,10 @@
 Weights go through fhld_ros.model.checkpoint like the shipped file; the meta adds the
 iteration, the best F1@10 so far, the latest evaluation, every command that trained the run
 and the training config (with labelled bags also ``bag_sources``: path, content key, weight and
-windows of each). last.pt also carries ``train_state``: the Adam state and every
-rank's torch RNG state (anchor noise and matching negatives draw from it). The data order and
-augmentation are functions of (seed, epoch, index), so with these the resumed run takes the
-same steps as one that never stopped.
+windows of each; a distillation also ``teacher``: its path, code version and meta). last.pt
+also carries ``train_state``: the Adam state and every rank's torch RNG state (anchor noise and
+matching negatives draw from it). The data order and augmentation are functions of (seed,
+epoch, index), so with these the resumed run takes the same steps as one that never stopped.
 """
 from __future__ import annotations
 
@@ -33,6 +33,7 @@ class RunState:
     commands: list[str] = field(default_factory=list)  # every command that trained the run
     # the labelled bags among the training sources: path, key, weight, windows (bag_source.py)
     bag_sources: list[dict] = field(default_factory=list)
+    teacher: dict = field(default_factory=dict)  # train.teacher's provenance (distill.py)
 
 
 def rank_seed(seed: int, dist: Dist) -> int:
@@ -51,6 +52,8 @@ def save_run(path: Path, module: FhldDetector, opt: torch.optim.Optimizer, state
             'train_config': to_plain(cfg)}
     if state.bag_sources:
         meta['bag_sources'] = state.bag_sources
+    if state.teacher:
+        meta['teacher'] = state.teacher
     if train_state is not None:
         meta['train_state'] = train_state
     save_checkpoint(path, module, state.commands[-1], meta)  # the command running now

@@ -1,0 +1,115 @@
+"""Distillation (train.teacher): the student takes the teacher's layers, freezes all but its
+global branch, learns the teacher's outputs, and runs and resumes as `fhld train`."""
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from test_train import MODEL, TEST_SEED, TINY, TINY_TEST, TRAIN_SEEDS, load_payload, train_argv
+from test_train import write_config as tiny_config
+
+from fhld_ros.cli import main as fhld
+from fhld_ros.model.checkpoint import load_checkpoint, save_checkpoint
+from fhld_ros.model.detector import FhldDetector
+from fhld_ros.training.cache import build_cache
+from fhld_ros.training.distill import Teacher
+
+pytestmark = pytest.mark.usefixtures('one_torch_thread')
+
+TEACHER = dataclasses.replace(MODEL, enc_layers=2)  # the student (MODEL) has one layer
+
+
+@pytest.fixture()
+def teacher_path(tmp_path) -> Path:
+    torch.manual_seed(0)
+    return save_checkpoint(tmp_path / 'teacher.pt', FhldDetector(TEACHER).eval(), 'test')
+
+
+def rasters(n: int = 2) -> torch.Tensor:
+    return torch.rand(n, MODEL.in_channels, MODEL.size_px, MODEL.size_px,
+                      generator=torch.Generator().manual_seed(1))
+
+
+def test_the_student_takes_the_teachers_layers_and_trains_only_its_global_branch(teacher_path):
+    teacher = load_checkpoint(teacher_path).model.state_dict()
+    student = FhldDetector(MODEL)
+    Teacher(str(teacher_path), student)
+    for name, p in student.named_parameters():
+        assert p.requires_grad == name.startswith('global_branch.'), name
+    own = student.state_dict()
+    assert all(torch.equal(value, teacher[key]) for key, value in own.items()), \
+        'a layer the student shares with the teacher was not copied'
+    skipped = sorted(set(teacher) - set(own))
+    assert skipped and all('.encoder.1.' in key for key in skipped)
+
+
+def test_the_loss_is_zero_for_the_teacher_itself_and_falls_as_the_student_learns(teacher_path):
+    twin = FhldDetector(TEACHER)
+    same = Teacher(str(teacher_path), twin).losses(twin, rasters())['loss']
+    assert same < 1e-5  # float rounding
+
+    student = FhldDetector(MODEL)
+    teacher = Teacher(str(teacher_path), student)
+    frozen = {k: v.clone() for k, v in student.state_dict().items()
+              if not k.startswith('global_branch.')}
+    opt = torch.optim.Adam([p for p in student.parameters() if p.requires_grad], lr=1e-3)
+    first = teacher.losses(student, rasters())['loss'].item()
+    for _ in range(40):
+        loss = teacher.losses(student, rasters())['loss']
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert first > 0 and loss.item() < 0.5 * first
+    after = student.state_dict()
+    assert all(torch.equal(value, after[key]) for key, value in frozen.items()), \
+        'a frozen layer (or a batch-norm statistic) changed'
+
+
+def test_a_student_that_changes_the_frozen_layers_is_refused(teacher_path):
+    with pytest.raises(ValueError, match="keep the teacher's backbone and local branch"):
+        Teacher(str(teacher_path), FhldDetector(dataclasses.replace(MODEL, local_hidden=16)))
+    with pytest.raises(ValueError, match='reads intensity as'):
+        Teacher(str(teacher_path),
+                FhldDetector(dataclasses.replace(MODEL, intensity_encoding='absolute')))
+
+
+@pytest.fixture(scope='module')
+def caches(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp('cache')
+    build_cache(root / 'train', range(*TRAIN_SEEDS), TINY, workers=1, progress=False)
+    build_cache(root / 'test', [TEST_SEED], TINY_TEST, workers=1, progress=False)
+    return root
+
+
+@pytest.mark.slow
+def test_fhld_train_distils_stops_and_resumes_exactly(caches, teacher_path, tmp_path):
+    cfg = tiny_config(tmp_path / 'distil.yaml', caches, teacher=str(teacher_path))
+    assert fhld(train_argv(cfg, tmp_path / 'a')) == 0
+    straight = load_payload(tmp_path / 'a' / 'last.pt')
+    assert straight['meta']['iteration'] == 3
+    teacher = load_checkpoint(teacher_path).model.state_dict()
+    for key, value in straight['state_dict'].items():
+        if not key.startswith('global_branch.'):
+            assert torch.equal(value, teacher[key]), key
+    assert not torch.equal(straight['state_dict']['global_branch.query_pos'],
+                           teacher['global_branch.query_pos'])
+    log = [json.loads(line) for line in (tmp_path / 'a' / 'log.jsonl').read_text().splitlines()]
+    assert all('loss_cls' in r and 'loss_curve' in r for r in log if 'loss' in r)
+    assert straight['meta']['teacher']['path'] == str(teacher_path)
+
+    run_b = train_argv(cfg, tmp_path / 'b')
+    assert fhld([*run_b, '--max-minutes', '0']) == 0  # one iteration, then stop
+    assert fhld([*run_b, '--resume']) == 0
+    resumed = load_payload(tmp_path / 'b' / 'last.pt')
+    for key, value in straight['state_dict'].items():
+        assert torch.equal(value, resumed['state_dict'][key]), key
+
+
+def test_init_and_teacher_together_are_one_clear_error(caches, teacher_path, tmp_path, capsys):
+    cfg = tiny_config(tmp_path / 'both.yaml', caches, teacher=str(teacher_path),
+                      init=str(teacher_path))
+    assert fhld(train_argv(cfg, tmp_path / 'run')) == 2
+    assert 'exclude each other' in capsys.readouterr().err
