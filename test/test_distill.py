@@ -15,7 +15,7 @@ from fhld_ros.cli import main as fhld
 from fhld_ros.model.checkpoint import load_checkpoint, save_checkpoint
 from fhld_ros.model.detector import FhldDetector
 from fhld_ros.training.cache import build_cache
-from fhld_ros.training.distill import Teacher
+from fhld_ros.training.distill import Teacher, fit_stem
 
 pytestmark = pytest.mark.usefixtures('one_torch_thread')
 
@@ -69,11 +69,54 @@ def test_the_loss_is_zero_for_the_teacher_itself_and_falls_as_the_student_learns
 
 
 def test_a_student_that_changes_the_frozen_layers_is_refused(teacher_path):
-    with pytest.raises(ValueError, match="keep the teacher's backbone and local branch"):
+    with pytest.raises(ValueError, match='differ from its teacher only in its global_branch'):
         Teacher(str(teacher_path), FhldDetector(dataclasses.replace(MODEL, local_hidden=16)))
     with pytest.raises(ValueError, match='reads intensity as'):
         Teacher(str(teacher_path),
                 FhldDetector(dataclasses.replace(MODEL, intensity_encoding='absolute')))
+
+
+def test_a_backbone_student_learns_the_teachers_features(tmp_path):
+    torch.manual_seed(0)
+    path = save_checkpoint(tmp_path / 'stem5.pt',
+                           FhldDetector(dataclasses.replace(MODEL, stem_kernel=5)).eval(), 'x')
+    student = FhldDetector(MODEL)  # a 3 x 3 stem
+    with pytest.raises(ValueError, match=r'\(train.distill\); it differs at backbone'):
+        Teacher(str(path), FhldDetector(MODEL))
+    teacher = Teacher(str(path), student, part='backbone')
+    for name, p in student.named_parameters():
+        assert p.requires_grad == name.startswith('backbone.'), name
+    heads = {k: v.clone() for k, v in student.state_dict().items()
+             if not k.startswith('backbone.')}
+    opt = torch.optim.Adam([p for p in student.parameters() if p.requires_grad], lr=1e-3)
+    first = teacher.losses(student, rasters())
+    assert set(first) >= {'feature_4', 'feature_8', 'feature_16', 'feature_32'}
+    for _ in range(30):
+        loss = teacher.losses(student, rasters())['loss']
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert loss.item() < 0.5 * first['loss'].item()
+    after = student.state_dict()
+    assert all(torch.equal(value, after[key]) for key, value in heads.items())
+    with pytest.raises(ValueError, match='train.distill must be one of'):
+        Teacher(str(path), FhldDetector(MODEL), part='heads')
+
+
+def test_the_stem_fit_recovers_a_kernel_of_its_own_size_and_approximates_a_larger_one():
+    raster = rasters(1)
+    torch.manual_seed(2)
+    same, larger = torch.nn.Conv2d(4, 8, 3, 2, 1, bias=False), torch.nn.Conv2d(4, 8, 7, 2, 3,
+                                                                                bias=False)
+    fitted = torch.nn.Conv2d(4, 8, 3, 2, 1, bias=False)
+    fit_stem(fitted, same, raster)
+    assert torch.allclose(fitted.weight, same.weight, atol=1e-4)
+    fit_stem(fitted, larger, raster)
+    error = (fitted(raster) - larger(raster)).pow(2).mean()
+    centre = torch.nn.Conv2d(4, 8, 3, 2, 1, bias=False)
+    with torch.no_grad():
+        centre.weight.copy_(larger.weight[:, :, 2:5, 2:5])  # the naive stand-in
+    assert error < (centre(raster) - larger(raster)).pow(2).mean()
 
 
 @pytest.fixture(scope='module')

@@ -92,9 +92,11 @@ class TrainSection:
     # a checkpoint whose weights start the run (fine-tuning); '' = random initialisation.
     # Only the weights: the model section must build the same layers; a resume ignores it
     init: str = ''
-    # a checkpoint to distil (training/distill.py): the model section's global branch learns
-    # its outputs, every other layer is copied from it and frozen; '' = train on the labels
+    # a checkpoint to distil (training/distill.py): the model section's `distill` part
+    # ('global_branch' or 'backbone') learns its outputs, every other layer is copied from it
+    # and frozen; '' = train on the labels
     teacher: str = ''
+    distill: str = 'global_branch'
 
 
 @dataclass(frozen=True)

@@ -1,15 +1,25 @@
-"""Distillation of a checkpoint's global branch into a smaller one (train.teacher).
+"""Distillation into a smaller model (train.teacher, train.distill).
 
-The global branch's transformer encoder runs on every window and costs ~6 ms of the served
-model's ~28 on a 2-core CPU for its three layers. A student with fewer encoder layers takes
-every other layer from the teacher by name and shape (the backbone, the local branch, the
-decoder, the heads, the first encoder layers) and keeps the backbone and local branch frozen,
-so the local segments, which place every published lane point, come from the teacher's own
-weights. Only the global branch trains, towards the teacher's per-query outputs on the
-training windows: each query's lane probability (a KL divergence) and, weighted by that
-probability, its curve (L1 over the 12 curve numbers), at every decoder layer. Queries keep
-their identity, so no matching is needed, and the student learns what the teacher does on
-the varied windows rather than the labels alone.
+The served model's cost on a 2-core CPU sits in two places a retraining can shrink: the
+global branch's transformer encoder (~6 ms of ~28 for three layers) and the backbone's 7 x 7
+stem (~3 ms). A student differs from its teacher in one part, `train.distill`, and takes every
+other layer from the teacher by name and shape, frozen:
+
+- 'global_branch': the student's global branch (e.g. fewer encoder layers) learns the
+  teacher's per-query outputs: each query's lane probability (a KL divergence) and, weighted by
+  that probability, its curve (L1 over the 12 curve numbers), at every decoder layer. Queries
+  keep their identity, so no matching is needed. Backbone and local branch are the teacher's
+  own, so the local segments, which place every published lane point, are unchanged.
+- 'backbone': the student's backbone (e.g. a 3 x 3 stem) learns the teacher's feature maps at
+  strides 4-32 (mean squared error relative to each map's mean square); both branches are the
+  teacher's.
+
+Where the student's part has a layer of the teacher's name and shape it starts from it. A stem
+of another kernel size starts from the least-squares fit of the teacher's stem convolution on
+the first batch (same stride and centres: the best linear k x k stand-in), so the layers
+after it see inputs of the scale they were trained on from the first step. The targets are
+what the teacher does on the varied training windows, not the labels, so the student learns
+to behave as the teacher (also where the teacher is unsure).
 """
 from __future__ import annotations
 
@@ -19,48 +29,60 @@ from torch import Tensor
 from fhld_ros.model.checkpoint import load_checkpoint
 from fhld_ros.model.detector import FhldDetector
 
-TRAINED_PREFIX = 'global_branch.'
+PARTS = ('global_branch', 'backbone')
+STEM = 'backbone.stem.conv.weight'
+STEM_FIT_PIXELS = 200_000  # output pixels of the first batch the stem's least squares use
 CURVE_WEIGHT = 10.0  # curve numbers are normalised window coordinates: 0.01 = 26 cm
 
 
 class Teacher:
-    """The teacher model and the student's distillation loss."""
+    """The teacher model and the student's distillation loss for one trained part."""
 
-    def __init__(self, path: str, student: FhldDetector, copy_weights: bool = True) -> None:
+    def __init__(self, path: str, student: FhldDetector, part: str = 'global_branch',
+                 copy_weights: bool = True) -> None:
+        if part not in PARTS:
+            raise ValueError(f'train.distill must be one of {", ".join(PARTS)}, not {part!r}')
         loaded = load_checkpoint(path)
         teacher = loaded.model.to(next(student.parameters()).device).eval()
         # the student's checkpoints carry where its teacher came from (meta['teacher'])
-        self.provenance = {'path': str(path), 'code_version': loaded.code_version,
+        self.provenance = {'path': str(path), 'part': part,
+                           'code_version': loaded.code_version,
                            'train_command': loaded.train_command,
                            'meta': {k: v for k, v in loaded.meta.items() if k != 'train_state'}}
         for p in teacher.parameters():
             p.requires_grad_(False)
-        self.model = teacher
+        self.model, self.part = teacher, part
         if teacher.cfg.intensity_encoding != student.cfg.intensity_encoding:
             raise ValueError(f'train.teacher {path} reads intensity as '
                              f'{teacher.cfg.intensity_encoding!r}, the model section as '
                              f'{student.cfg.intensity_encoding!r}')
-        source = teacher.state_dict()
-        target = student.state_dict()
+        source, target = teacher.state_dict(), student.state_dict()
         matching = {k: v for k, v in source.items()
                     if k in target and target[k].shape == v.shape}
-        frozen_missing = sorted(k for k in target
-                                if not k.startswith(TRAINED_PREFIX) and k not in matching)
-        if frozen_missing:
-            raise ValueError(f'train.teacher {path}: the student must keep the teacher\'s '
-                             f'backbone and local branch; it differs at {frozen_missing[0]}')
+        prefix = part + '.'
+        differs = sorted(k for k in target if not k.startswith(prefix) and k not in matching)
+        if differs:
+            raise ValueError(f'train.teacher {path}: the student may differ from its teacher '
+                             f'only in its {part} (train.distill); it differs at {differs[0]}')
         if copy_weights:
             student.load_state_dict(matching, strict=False)
+        # fitted on the first batch (losses); a resumed run has it in its weights already
+        self.stem_to_fit = copy_weights and part == 'backbone' and STEM not in matching
         for name, p in student.named_parameters():
-            p.requires_grad_(name.startswith(TRAINED_PREFIX))
+            p.requires_grad_(name.startswith(prefix))
 
     def losses(self, student: FhldDetector, raster: Tensor) -> dict[str, Tensor]:
-        """Distillation losses of one batch. One backbone pass serves both (it is the same and
-        frozen); the student stays in eval mode, so batch norm keeps the teacher's statistics
-        (the global branch has no dropout or batch norm)."""
+        """Distillation losses of one batch. The student stays in eval mode: batch norm keeps
+        the statistics it was given and acts as a fixed scale and shift."""
         student.eval()
-        with torch.no_grad():
-            feats = student.backbone(raster.contiguous(memory_format=torch.channels_last))
+        raster = raster.contiguous(memory_format=torch.channels_last)
+        if self.stem_to_fit:
+            fit_stem(student.backbone.stem.conv, self.model.backbone.stem.conv, raster)
+            self.stem_to_fit = False
+        if self.part == 'backbone':
+            return self._feature_losses(student, raster)
+        with torch.no_grad():  # one backbone pass serves both: it is the same, and frozen
+            feats = student.backbone(raster)
             t_logits, t_curves = self.model.global_branch(feats[32])
         s_logits, s_curves = student.global_branch(feats[32])
         p_lane = t_logits.softmax(-1)
@@ -71,3 +93,29 @@ class Teacher:
                 'loss_curve': loss_curve,
                 'prob_err': (s_logits.softmax(-1)[..., 1] - p_lane[..., 1]).abs().max()}
 
+    def _feature_losses(self, student: FhldDetector, raster: Tensor) -> dict[str, Tensor]:
+        with torch.no_grad():
+            target = self.model.backbone(raster)
+        feats = student.backbone(raster)
+        per_stride = {s: (feats[s] - t).pow(2).mean() / t.pow(2).mean().clamp_min(1e-12)
+                      for s, t in target.items()}
+        loss = sum(per_stride.values(), torch.zeros((), device=raster.device))
+        zero = torch.zeros((), device=raster.device)  # the progress bar's class/curve columns
+        return {'loss': loss, 'loss_cls': zero, 'loss_curve': zero,
+                **{f'feature_{s}': value for s, value in per_stride.items()}}
+
+
+@torch.no_grad()
+def fit_stem(conv: torch.nn.Conv2d, teacher: torch.nn.Conv2d, raster: Tensor) -> None:
+    """conv's weights := the least-squares k x k kernels that best reproduce teacher's output
+    on raster (both without bias, same stride, padding k // 2: the same output centres)."""
+    target = torch.nn.functional.conv2d(raster, teacher.weight, None, teacher.stride,
+                                        teacher.padding)  # (B, C_out, h, w)
+    k = conv.kernel_size[0]
+    patches = torch.nn.functional.unfold(raster, k, padding=k // 2, stride=conv.stride)
+    x = patches.transpose(1, 2).reshape(-1, patches.shape[1])  # (B h w, C_in k k)
+    y = target.flatten(2).transpose(1, 2).reshape(-1, target.shape[1])
+    rows = torch.randperm(x.shape[0], generator=torch.Generator().manual_seed(0))
+    rows = rows[:STEM_FIT_PIXELS].to(x.device)
+    solution = torch.linalg.lstsq(x[rows].double(), y[rows].double()).solution
+    conv.weight.copy_(solution.T.reshape(conv.weight.shape).to(conv.weight.dtype))
