@@ -32,6 +32,7 @@ from fhld_ros.model.config import FhldConfig
 from fhld_ros.training.augment import AugmentParams
 from fhld_ros.training.bag_source import LabelledBag
 from fhld_ros.training.cache import ALL_SENSORS, ALL_TOPOLOGIES, TEST_SEED_BASE, CacheSettings
+from fhld_ros.training.distill import CURVE_WEIGHT
 from fhld_ros.training.variation import SHARES
 
 SCHEDULES = ('constant', 'cosine', 'step')
@@ -97,6 +98,9 @@ class TrainSection:
     # and frozen; '' = train on the labels
     teacher: str = ''
     distill: str = 'global_branch'
+    # global_branch: weights of the lane-probability (KL) and curve (L1) terms (distill.py)
+    distill_class_weight: float = 1.0
+    distill_curve_weight: float = CURVE_WEIGHT
 
 
 @dataclass(frozen=True)

@@ -6,9 +6,10 @@ stem (~3 ms). A student differs from its teacher in one part, `train.distill`, a
 other layer from the teacher by name and shape, frozen:
 
 - 'global_branch': the student's global branch (e.g. fewer encoder layers) learns the
-  teacher's per-query outputs: each query's lane probability (a KL divergence) and, weighted by
-  that probability, its curve (L1 over the 12 curve numbers), at every decoder layer. Queries
-  keep their identity, so no matching is needed. Backbone and local branch are the teacher's
+  teacher's per-query outputs: each query's lane probability (a KL divergence, times
+  `class_weight`) and, weighted by that probability, its curve (L1 over the 12 curve numbers,
+  times `curve_weight`), at every decoder layer. Queries keep their identity, so no matching
+  is needed. Backbone and local branch are the teacher's
   own, so the local segments, which place every published lane point, are unchanged.
 - 'backbone': the student's backbone (e.g. a 3 x 3 stem) learns the teacher's feature maps at
   strides 4-32 (mean squared error relative to each map's mean square); both branches are the
@@ -30,16 +31,18 @@ from fhld_ros.model.checkpoint import load_checkpoint
 from fhld_ros.model.detector import FhldDetector
 
 PARTS = ('global_branch', 'backbone')
+# curve numbers are normalised window coordinates (0.01 = 26 cm) and heights in metres
+CURVE_WEIGHT = 10.0
 STEM = 'backbone.stem.conv.weight'
 STEM_FIT_PIXELS = 200_000  # output pixels of the first batch the stem's least squares use
-CURVE_WEIGHT = 10.0  # curve numbers are normalised window coordinates: 0.01 = 26 cm
 
 
 class Teacher:
     """The teacher model and the student's distillation loss for one trained part."""
 
     def __init__(self, path: str, student: FhldDetector, part: str = 'global_branch',
-                 copy_weights: bool = True) -> None:
+                 copy_weights: bool = True, class_weight: float = 1.0,
+                 curve_weight: float = CURVE_WEIGHT) -> None:
         if part not in PARTS:
             raise ValueError(f'train.distill must be one of {", ".join(PARTS)}, not {part!r}')
         loaded = load_checkpoint(path)
@@ -52,6 +55,7 @@ class Teacher:
         for p in teacher.parameters():
             p.requires_grad_(False)
         self.model, self.part = teacher, part
+        self.class_weight, self.curve_weight = class_weight, curve_weight
         if teacher.cfg.intensity_encoding != student.cfg.intensity_encoding:
             raise ValueError(f'train.teacher {path} reads intensity as '
                              f'{teacher.cfg.intensity_encoding!r}, the model section as '
@@ -88,7 +92,8 @@ class Teacher:
         p_lane = t_logits.softmax(-1)
         kl = (p_lane * (p_lane.clamp_min(1e-8).log() - s_logits.log_softmax(-1))).sum(-1)
         curve = (s_curves - t_curves).abs().sum(-1) * p_lane[..., 1]
-        loss_class, loss_curve = kl.mean(), CURVE_WEIGHT * curve.mean()
+        loss_class = self.class_weight * kl.mean()
+        loss_curve = self.curve_weight * curve.mean()
         return {'loss': loss_class + loss_curve, 'loss_cls': loss_class,
                 'loss_curve': loss_curve,
                 'prob_err': (s_logits.softmax(-1)[..., 1] - p_lane[..., 1]).abs().max()}

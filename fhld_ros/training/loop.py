@@ -139,8 +139,9 @@ def start_run(cfg: TrainConfig, out_dir: Path, dist: Dist, resume: bool, command
         init_weights(module, t.init)
     if t.teacher and dist.world > 1:
         raise ValueError('train.teacher: a distillation runs in one process')
-    teacher = (Teacher(t.teacher, module, t.distill, copy_weights=not resuming)
-               if t.teacher else None)
+    teacher = (Teacher(t.teacher, module, t.distill, copy_weights=not resuming,
+                       class_weight=t.distill_class_weight,
+                       curve_weight=t.distill_curve_weight) if t.teacher else None)
     if resuming:
         state = resume_run(out_dir / 'last.pt', module, opt, model_cfg, cfg.seed, dist)
         if dist.main:
