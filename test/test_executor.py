@@ -1,5 +1,4 @@
-"""HandoffExecutor: still a MultiThreadedExecutor (concurrent callback groups, errors surface);
-WakeableWorker: wake-ups during the work run it once more, errors do not end it, stop joins."""
+"""HandoffExecutor: still a MultiThreadedExecutor (concurrent callback groups, errors surface)."""
 from __future__ import annotations
 
 import threading
@@ -10,7 +9,7 @@ import rclpy
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from std_msgs.msg import String
 
-from fhld_ros.ros.executor import HandoffExecutor, WakeableWorker
+from fhld_ros.ros.executor import HandoffExecutor
 
 pytestmark = pytest.mark.ros
 
@@ -62,37 +61,3 @@ def test_callback_errors_surface_from_spin(ros_env, rclpy_context):
     finally:
         executor.shutdown()
         node.destroy_node()
-
-
-def test_wakeable_worker_runs_once_more_for_wakeups_during_its_work():
-    started, release = threading.Event(), threading.Event()
-    runs: list[int] = []
-    errors: list[Exception] = []
-
-    def work() -> None:
-        runs.append(len(runs))
-        if len(runs) == 1:
-            started.set()
-            assert release.wait(10)
-        if len(runs) == 2:
-            raise RuntimeError('one bad detection')
-
-    worker = WakeableWorker(work, errors.append, 'probe')
-    worker.wake()
-    assert started.wait(10)
-    for _ in range(5):  # during the first run: one more run, not five
-        worker.wake()
-    release.set()
-    deadline = time.monotonic() + 10
-    while not errors and time.monotonic() < deadline:
-        time.sleep(0.01)
-    assert [str(e) for e in errors] == ['one bad detection'] and len(runs) == 2
-    worker.wake()  # the error did not end the worker
-    while len(runs) < 3 and time.monotonic() < deadline:
-        time.sleep(0.01)
-    assert len(runs) == 3
-    worker.stop()
-    assert not worker._thread.is_alive()
-    worker.wake()
-    time.sleep(0.05)
-    assert len(runs) == 3

@@ -1,5 +1,4 @@
-"""HandoffExecutor: rclpy's MultiThreadedExecutor, waiting for a worker to take each callback;
-WakeableWorker: the node's detection thread.
+"""HandoffExecutor: rclpy's MultiThreadedExecutor, waiting for a worker to take each callback.
 
 In rclpy 7.1.6 (the Jazzy wheels), while a callback handed to the thread pool has not started
 yet, the executor's wait returns at once (ros2/rclpy#1452, fixed upstream after this release).
@@ -67,41 +66,3 @@ class HandoffExecutor(MultiThreadedExecutor):
                 self._futures.remove(future)
         for future in done:
             future.result()
-
-
-class WakeableWorker:
-    """`work` on a thread of its own, run again whenever wake() was called since it last began.
-
-    The node's detection: woken by the cloud and odometry callbacks (and a poll), it starts
-    within a thread switch. A guard condition instead went through the executor's wait set and
-    a pool hand-off first (measured: 2-3 ms from wake-up to detection). An exception in `work`
-    is passed to `on_error` and the worker goes on.
-    """
-
-    def __init__(self, work: Callable[[], None], on_error: Callable[[Exception], None],
-                 name: str) -> None:
-        self._work, self._on_error = work, on_error
-        self._due = threading.Event()
-        self._stopping = False
-        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
-        self._thread.start()
-
-    def wake(self) -> None:
-        self._due.set()
-
-    def stop(self) -> None:
-        """Let the running `work` finish, then end the thread."""
-        self._stopping = True
-        self._due.set()
-        self._thread.join()
-
-    def _run(self) -> None:
-        while True:
-            self._due.wait()
-            if self._stopping:
-                return
-            self._due.clear()  # a wake-up during the work runs it once more
-            try:
-                self._work()
-            except Exception as exc:  # the worker outlives any one detection
-                self._on_error(exc)
