@@ -8,13 +8,12 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_train import MODEL, TEST_SEED, TINY, TINY_TEST, TRAIN_SEEDS, load_payload, train_argv
+from test_train import MODEL, build_tiny_caches, load_payload, train_argv
 from test_train import write_config as tiny_config
 
 from fhld_ros.cli import main as fhld
 from fhld_ros.model.checkpoint import load_checkpoint, save_checkpoint
 from fhld_ros.model.detector import FhldDetector
-from fhld_ros.training.cache import build_cache
 from fhld_ros.training.distill import Teacher, fit_stem
 
 pytestmark = pytest.mark.usefixtures('one_torch_thread')
@@ -121,10 +120,7 @@ def test_the_stem_fit_recovers_a_kernel_of_its_own_size_and_approximates_a_large
 
 @pytest.fixture(scope='module')
 def caches(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp('cache')
-    build_cache(root / 'train', range(*TRAIN_SEEDS), TINY, workers=1, progress=False)
-    build_cache(root / 'test', [TEST_SEED], TINY_TEST, workers=1, progress=False)
-    return root
+    return build_tiny_caches(tmp_path_factory.mktemp('cache'))
 
 
 @pytest.mark.slow

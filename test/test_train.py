@@ -57,13 +57,17 @@ TRAIN_SEEDS = (0, 2)
 TEST_SEED = 1_000_000
 
 
-@pytest.fixture(scope='module')
-def caches(tmp_path_factory) -> Path:
-    """Training and test cache of the TINY settings (built inline; the pool has its own test)."""
-    root = tmp_path_factory.mktemp('cache')
+def build_tiny_caches(root: Path) -> Path:
+    """Training and test cache of the TINY settings in root/train, root/test (built inline;
+    the pool has its own test)."""
     build_cache(root / 'train', range(*TRAIN_SEEDS), TINY, workers=1, progress=False)
     build_cache(root / 'test', [TEST_SEED], TINY_TEST, workers=1, progress=False)
     return root
+
+
+@pytest.fixture(scope='module')
+def caches(tmp_path_factory) -> Path:
+    return build_tiny_caches(tmp_path_factory.mktemp('cache'))
 
 
 def write_config(path: Path, caches: Path, **train) -> Path:

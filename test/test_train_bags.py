@@ -13,10 +13,8 @@ import pytest
 import torch
 from test_train import (
     MODEL,
-    TEST_SEED,
     TINY,
-    TINY_TEST,
-    TRAIN_SEEDS,
+    build_tiny_caches,
     load_payload,
     train_argv,
     write_config,
@@ -27,7 +25,6 @@ from fhld_ros.bev import BevSpec
 from fhld_ros.cli import main as fhld
 from fhld_ros.sim.simulator import Simulator
 from fhld_ros.training.bag_source import LabelledBag, bag_key, bag_samples, build_bag_cache
-from fhld_ros.training.cache import build_cache
 from fhld_ros.training.config import load_config
 from fhld_ros.training.dataset import (
     CacheDataset,
@@ -48,9 +45,7 @@ BAG_SEED, BAG_SWEEPS = 7, 30  # 15 windows of TINY's 2 sweeps, one every 2 sweep
 @pytest.fixture(scope='module')
 def caches(tmp_path_factory) -> Path:
     """The TINY simulator caches of test_train, and a simulated 30-sweep bag beside them."""
-    root = tmp_path_factory.mktemp('cache')
-    build_cache(root / 'train', range(*TRAIN_SEEDS), TINY, workers=1, progress=False)
-    build_cache(root / 'test', [TEST_SEED], TINY_TEST, workers=1, progress=False)
+    root = build_tiny_caches(tmp_path_factory.mktemp('cache'))
     assert fhld(['simulate', str(root / 'drive'), '--seed', str(BAG_SEED), '--sweeps',
                  str(BAG_SWEEPS), '--sensor', 'vlp16', '--quiet']) == 0
     return root
