@@ -6,14 +6,16 @@ import dataclasses
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
-from test_train import MODEL, build_tiny_caches, load_payload, train_argv
+from test_train import MODEL, REPO, build_tiny_caches, load_payload, train_argv
 from test_train import write_config as tiny_config
 
 from fhld_ros.cli import main as fhld
 from fhld_ros.model.checkpoint import load_checkpoint, save_checkpoint
 from fhld_ros.model.detector import FhldDetector
+from fhld_ros.training.config import cache_settings, load_config
 from fhld_ros.training.distill import Teacher, fit_stem
 
 pytestmark = pytest.mark.usefixtures('one_torch_thread')
@@ -65,6 +67,19 @@ def test_the_loss_is_zero_for_the_teacher_itself_and_falls_as_the_student_learns
     after = student.state_dict()
     assert all(torch.equal(value, after[key]) for key, value in frozen.items()), \
         'a frozen layer (or a batch-norm statistic) changed'
+
+
+def test_windows_without_lanes_teach_no_lane_and_the_others_the_teacher(teacher_path):
+    twin = FhldDetector(TEACHER)
+    teacher = Teacher(str(teacher_path), twin, no_lane_weight=2.0)
+    lane = np.array([[0.0, -5.0, -1.8], [0.0, 5.0, -1.8]])
+    assert teacher.losses(twin, rasters(), [[lane], [lane]])['loss'] < 1e-5
+    with torch.no_grad():
+        p_lane = twin.features(rasters())[0].softmax(-1)[:, 1:, :, 1]  # window 1: no lanes
+    expected = 2.0 * -torch.log1p(-p_lane).sum() / p_lane.numel() / 2  # half the windows
+    got = teacher.losses(twin, rasters(), [[lane], []])['loss_cls']
+    assert torch.isclose(got, expected, rtol=1e-4), (got, expected)
+    assert Teacher(str(teacher_path), twin).losses(twin, rasters(), [[lane], []])['loss'] < 1e-5
 
 
 def test_a_student_that_changes_the_frozen_layers_is_refused(teacher_path):
@@ -152,3 +167,25 @@ def test_init_and_teacher_together_are_one_clear_error(caches, teacher_path, tmp
                       init=str(teacher_path))
     assert fhld(train_argv(cfg, tmp_path / 'run')) == 2
     assert 'exclude each other' in capsys.readouterr().err
+
+
+@pytest.mark.parametrize('name, value', [('distill_no_lane_weight', -1.0),
+                                         ('distill_class_weight', float('nan')),
+                                         ('distill_curve_weight', True)])
+def test_a_bad_distillation_weight_is_one_clear_error(caches, teacher_path, tmp_path, capsys,
+                                                      name, value):
+    cfg = tiny_config(tmp_path / 'bad.yaml', caches, teacher=str(teacher_path), **{name: value})
+    assert fhld(train_argv(cfg, tmp_path / 'run')) == 2
+    err = capsys.readouterr().err.strip()
+    assert f'train.{name} must be a number >= 0' in err and len(err.splitlines()) == 1, err
+
+
+@pytest.mark.parametrize('path', sorted((REPO / 'config').glob('distill_*.yaml')),
+                         ids=lambda p: p.name)
+def test_distillation_configs_load_and_reuse_a_training_configs_cache(path):
+    cfg = load_config(path)
+    assert cfg.train.teacher and not cfg.train.init
+    owners = [load_config(p) for p in (REPO / 'config').glob('train_*.yaml')]
+    owners = [o for o in owners if o.data.train_cache == cfg.data.train_cache]
+    assert owners, f'no training config builds {cfg.data.train_cache}'
+    assert all(cache_settings(o, 'train') == cache_settings(cfg, 'train') for o in owners)

@@ -101,6 +101,8 @@ class TrainSection:
     # global_branch: weights of the lane-probability (KL) and curve (L1) terms (distill.py)
     distill_class_weight: float = 1.0
     distill_curve_weight: float = CURVE_WEIGHT
+    # global_branch: > 0 = windows without labelled lanes teach "no lane" at this weight
+    distill_no_lane_weight: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -161,6 +163,11 @@ def _check(t: TrainSection, d: DataSection) -> None:
     if t.init and t.teacher:
         raise ValueError('train.init and train.teacher exclude each other: a distillation '
                          'starts from its teacher')
+    for name in ('distill_class_weight', 'distill_curve_weight', 'distill_no_lane_weight'):
+        value = getattr(t, name)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                or not (math.isfinite(value) and value >= 0):
+            raise ValueError(f'train.{name} must be a number >= 0, not {value!r}')
     if t.iterations < 1 or t.batch_size < 1 or t.eval_every < 1 or t.ckpt_every < 1:
         raise ValueError('train.iterations, batch_size, eval_every, ckpt_every must be >= 1')
     for name in ('train_seeds', 'test_seeds'):

@@ -10,7 +10,10 @@ other layer from the teacher by name and shape, frozen:
   `class_weight`) and, weighted by that probability, its curve (L1 over the 12 curve numbers,
   times `curve_weight`), at every decoder layer. Queries keep their identity, so no matching
   is needed. Backbone and local branch are the teacher's
-  own, so the local segments, which place every published lane point, are unchanged.
+  own, so the local segments, which place every published lane point, are unchanged. With
+  `no_lane_weight` > 0 a window whose labels hold no lane (an unmarked road) teaches every
+  query "no lane" instead of the teacher's probability, times that weight: the teacher's false
+  lanes there are unlearnt while every other window holds the student to the teacher.
 - 'backbone': the student's backbone (e.g. a 3 x 3 stem) learns the teacher's feature maps at
   strides 4-32 (mean squared error relative to each map's mean square); both branches are the
   teacher's.
@@ -42,7 +45,7 @@ class Teacher:
 
     def __init__(self, path: str, student: FhldDetector, part: str = 'global_branch',
                  copy_weights: bool = True, class_weight: float = 1.0,
-                 curve_weight: float = CURVE_WEIGHT) -> None:
+                 curve_weight: float = CURVE_WEIGHT, no_lane_weight: float = 0.0) -> None:
         if part not in PARTS:
             raise ValueError(f'train.distill must be one of {", ".join(PARTS)}, not {part!r}')
         loaded = load_checkpoint(path)
@@ -56,6 +59,7 @@ class Teacher:
             p.requires_grad_(False)
         self.model, self.part = teacher, part
         self.class_weight, self.curve_weight = class_weight, curve_weight
+        self.no_lane_weight = no_lane_weight
         if teacher.cfg.intensity_encoding != student.cfg.intensity_encoding:
             raise ValueError(f'train.teacher {path} reads intensity as '
                              f'{teacher.cfg.intensity_encoding!r}, the model section as '
@@ -75,9 +79,11 @@ class Teacher:
         for name, p in student.named_parameters():
             p.requires_grad_(name.startswith(prefix))
 
-    def losses(self, student: FhldDetector, raster: Tensor) -> dict[str, Tensor]:
-        """Distillation losses of one batch. The student stays in eval mode: batch norm keeps
-        the statistics it was given and acts as a fixed scale and shift."""
+    def losses(self, student: FhldDetector, raster: Tensor,
+               lanes: list[list] | None = None) -> dict[str, Tensor]:
+        """Distillation losses of one batch (lanes: each window's labelled lanes, read only for
+        no_lane_weight). The student stays in eval mode: batch norm keeps the statistics it was
+        given and acts as a fixed scale and shift."""
         student.eval()
         raster = raster.contiguous(memory_format=torch.channels_last)
         if self.stem_to_fit:
@@ -89,10 +95,15 @@ class Teacher:
             feats = student.backbone(raster)
             t_logits, t_curves = self.model.global_branch(feats[32])
         s_logits, s_curves = student.global_branch(feats[32])
-        p_lane = t_logits.softmax(-1)
-        kl = (p_lane * (p_lane.clamp_min(1e-8).log() - s_logits.log_softmax(-1))).sum(-1)
+        p_lane = t_logits.softmax(-1)  # (layers, B, N, 2)
+        target, weight = p_lane, torch.ones_like(p_lane[..., 0])
+        if self.no_lane_weight > 0 and lanes is not None:
+            empty = torch.tensor([len(window) == 0 for window in lanes], device=raster.device)
+            target = torch.where(empty[:, None, None], p_lane.new_tensor([1.0, 0.0]), p_lane)
+            weight = torch.where(empty[:, None], self.no_lane_weight, weight)
+        kl = (target * (target.clamp_min(1e-8).log() - s_logits.log_softmax(-1))).sum(-1)
         curve = (s_curves - t_curves).abs().sum(-1) * p_lane[..., 1]
-        loss_class = self.class_weight * kl.mean()
+        loss_class = self.class_weight * (weight * kl).mean()
         loss_curve = self.curve_weight * curve.mean()
         return {'loss': loss_class + loss_curve, 'loss_cls': loss_class,
                 'loss_curve': loss_curve,

@@ -141,7 +141,8 @@ def start_run(cfg: TrainConfig, out_dir: Path, dist: Dist, resume: bool, command
         raise ValueError('train.teacher: a distillation runs in one process')
     teacher = (Teacher(t.teacher, module, t.distill, copy_weights=not resuming,
                        class_weight=t.distill_class_weight,
-                       curve_weight=t.distill_curve_weight) if t.teacher else None)
+                       curve_weight=t.distill_curve_weight,
+                       no_lane_weight=t.distill_no_lane_weight) if t.teacher else None)
     if resuming:
         state = resume_run(out_dir / 'last.pt', module, opt, model_cfg, cfg.seed, dist)
         if dist.main:
@@ -263,7 +264,7 @@ def train_step(run: Run, it: int, batch: dict, lr: float) -> dict[str, Tensor]:
                               run.module.cfg.size_px)
     run.opt.zero_grad(set_to_none=True)
     if run.teacher is not None:
-        losses = run.teacher.losses(run.module, raster)
+        losses = run.teacher.losses(run.module, raster, batch['lanes'])
         losses['loss'].backward()
     else:
         run.module.train()
