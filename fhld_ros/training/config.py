@@ -157,6 +157,12 @@ def load_config(path: str | os.PathLike) -> TrainConfig:
     return cfg
 
 
+def _check_non_negative(name: str, value: object) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) \
+            or not (math.isfinite(value) and value >= 0):
+        raise ValueError(f'{name} must be a number >= 0, not {value!r}')
+
+
 def _check(t: TrainSection, d: DataSection) -> None:
     if t.schedule not in SCHEDULES:
         raise ValueError(f'train.schedule must be one of {", ".join(SCHEDULES)}')
@@ -164,10 +170,7 @@ def _check(t: TrainSection, d: DataSection) -> None:
         raise ValueError('train.init and train.teacher exclude each other: a distillation '
                          'starts from its teacher')
     for name in ('distill_class_weight', 'distill_curve_weight', 'distill_no_lane_weight'):
-        value = getattr(t, name)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                or not (math.isfinite(value) and value >= 0):
-            raise ValueError(f'train.{name} must be a number >= 0, not {value!r}')
+        _check_non_negative(f'train.{name}', getattr(t, name))
     if t.iterations < 1 or t.batch_size < 1 or t.eval_every < 1 or t.ckpt_every < 1:
         raise ValueError('train.iterations, batch_size, eval_every, ckpt_every must be >= 1')
     for name in ('train_seeds', 'test_seeds'):
@@ -177,10 +180,8 @@ def _check(t: TrainSection, d: DataSection) -> None:
     if max(d.train_seeds[0], d.test_seeds[0]) < min(d.train_seeds[1], d.test_seeds[1]):
         raise ValueError(f'data.train_seeds {list(d.train_seeds)} and data.test_seeds '
                          f'{list(d.test_seeds)} overlap: the test set must be held out')
-    w = d.sim_weight
-    if isinstance(w, bool) or not isinstance(w, (int, float)) or not (math.isfinite(w) and w >= 0):
-        raise ValueError(f'data.sim_weight must be a number >= 0, not {w!r}')
-    if w == 0 and not d.bags:
+    _check_non_negative('data.sim_weight', d.sim_weight)
+    if d.sim_weight == 0 and not d.bags:
         raise ValueError('data.sim_weight is 0 and there are no data.bags: nothing to train on')
     for i, bag in enumerate(d.bags):
         bag.check(f'data.bags[{i}]')
