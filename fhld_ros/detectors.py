@@ -14,7 +14,7 @@ import torch
 
 from fhld_ros.classical import ClassicalLaneDetector
 from fhld_ros.errors import ConfigError
-from fhld_ros.evidence import keep_observed
+from fhld_ros.evidence import keep_observed, keep_painted
 from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT, CheckpointError, load_checkpoint
 from fhld_ros.model.config import FhldConfig
 from fhld_ros.model.detector import Detections, FhldDetector
@@ -93,14 +93,23 @@ def fhld_detections(params: DetectorParams, eager: bool = False,
 
 def fhld_detector(params: DetectorParams) -> Encoded[tuple[list[np.ndarray], np.ndarray]]:
     """The FHLD model from params.checkpoint (default: the shipped weights), as served; lanes
-    keep only their parts near observed ground (evidence.py, params.evidence_reach_m)."""
+    keep only their parts near observed ground and only if paint shows (evidence.py)."""
     detections = fhld_detections(params)
 
     def detect(window: BevWindow) -> tuple[list[np.ndarray], np.ndarray]:
         found = detections(window)
-        return keep_observed(found.lanes, found.confidences, window.raster,
-                             window.spec.resolution_m, params.evidence_reach_m)
+        return with_evidence(found.lanes, found.confidences, window, params)
     return Encoded(detect, detections.intensity_encoding)
+
+
+def with_evidence(lanes: list[np.ndarray], confidences: np.ndarray, window: BevWindow,
+                  params: DetectorParams) -> tuple[list[np.ndarray], np.ndarray]:
+    """The lanes cut to observed ground (params.evidence_reach_m), then those without paint
+    dropped (params.min_paint_contrast): evidence.py."""
+    res = window.spec.resolution_m
+    lanes, confidences = keep_observed(lanes, confidences, window.raster, res,
+                                       params.evidence_reach_m)
+    return keep_painted(lanes, confidences, window.raster, res, params.min_paint_contrast)
 
 
 def fhld_variants(params: DetectorParams,
@@ -108,16 +117,15 @@ def fhld_variants(params: DetectorParams,
     """BevWindow -> {FHLD_VARIANTS name: lanes}, all from ONE model.detect call.
 
     'fhld' the final lanes (heights refined from the measured surface), 'fhld-model-z' the
-    same lanes with the local branch's own heights (both cut to observed ground as
-    fhld_detector does, after the heights), 'fhld-global' the global curves alone.
+    same lanes with the local branch's own heights (both with fhld_detector's evidence
+    checks, after the heights), 'fhld-global' the global curves alone.
     params.refine_heights is ignored: both kinds of heights are returned.
     """
     detections = fhld_detections(dataclasses.replace(params, refine_heights=False), eager=eager,
                                  curve_points=CURVE_POINTS)
 
     def observed(lanes: list[np.ndarray], window: BevWindow) -> list[np.ndarray]:
-        return keep_observed(lanes, np.zeros(len(lanes)), window.raster,
-                             window.spec.resolution_m, params.evidence_reach_m)[0]
+        return with_evidence(lanes, np.zeros(len(lanes)), window, params)[0]
 
     def detect(window: BevWindow) -> dict[str, list[np.ndarray]]:
         found = detections(window)

@@ -1,4 +1,6 @@
-"""Lanes only where the sensor looked: lane ends far from every observed cell are cut.
+"""Lanes only where there is evidence: where the sensor looked, and where paint shows.
+
+keep_observed: lane ends far from every observed cell are cut.
 
 The model draws a lane through the whole window once it has found it, also across ground that
 no return ever touched: the sector beside and behind a forward-only scanner, the road past a
@@ -8,12 +10,30 @@ with an integral image). Each lane keeps the span from its first to its last sup
 if that is at least `min_length_m` long. Gaps inside the span stay bridged: splitting a lane
 there cost the lane-level (ONCE-3DLanes) matching more than it gained (docs/accuracy.md), and
 the ring gaps of a sparse sensor or the blind ring around a single sweep are such gaps.
+
+keep_painted: a lane whose brightest returns do not stand out from the road on both sides of it
+is dropped. On real sweeps the model drew confident lanes along a light strip at a curb foot, a
+dark seam and a bare curb, where the layout looks like a lane but no paint is (docs/accuracy.md,
+"Paint evidence"). Paint is brighter than the road it lies on, whatever the sensor's units, so
+the test is a ratio: the 95th percentile of the mean intensities of the observed cells within
+PAINT_HALF_WIDTH_M of the lane, against the median of the cells 0.35-1 m to each side that lie
+at the lane's height (curbs and sidewalks are not the road). Both sides must fall short of it by
+min_contrast. A lane with too few observed cells on it, or beside it on both sides, is kept:
+no evidence either way (the blind ring of a single sweep, a lane at the window's edge).
 """
 from __future__ import annotations
 
 import numpy as np
 
-DENSITY_CHANNEL = 1
+from fhld_ros.bev import MIN_HEIGHT_HIGH_M, MIN_HEIGHT_LOW_M
+
+INTENSITY_CHANNEL, DENSITY_CHANNEL, MIN_HEIGHT_CHANNEL = 0, 1, 3
+PAINT_STEP_M = 0.1  # the lane is sampled this often along its length
+PAINT_HALF_WIDTH_M = 0.12  # on the lane: paint is 0.1-0.2 m wide, the lane a few cm off it
+ROAD_BESIDE_M = (0.35, 1.0)  # the road surface on each side, clear of the paint
+LEVEL_M = 0.05  # a cell beside the lane is road when its lowest return is this close in height
+PERCENTILE = 95.0  # dashed lines: paint covers a quarter of a lane's length, or less
+MIN_CELLS = 10  # fewer observed cells on the lane (or on a side): no evidence either way
 
 
 def _integral(raster: np.ndarray) -> np.ndarray:
@@ -60,3 +80,86 @@ def keep_observed(lanes: list[np.ndarray], confidences: np.ndarray, raster: np.n
             kept.append(span)
             scores.append(score)
     return kept, np.asarray(scores, dtype=np.asarray(confidences).dtype)
+
+
+def _along(lane: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 2) points every PAINT_STEP_M along the lane's xy and the unit normals there."""
+    xy = lane[:, :2]
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
+    at = np.arange(0.0, arc[-1], PAINT_STEP_M)
+    points = np.column_stack([np.interp(at, arc, xy[:, 0]), np.interp(at, arc, xy[:, 1])])
+    if len(points) < 2:
+        return points, np.zeros_like(points)
+    tangent = np.gradient(points, axis=0)
+    tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-9)
+    return points, np.column_stack([-tangent[:, 1], tangent[:, 0]])
+
+
+def _cells(raster: np.ndarray, points: np.ndarray, normals: np.ndarray, offsets: np.ndarray,
+           resolution_m: float) -> tuple[np.ndarray, ...]:
+    """Mean intensity, lowest height (m), lateral offset and point index of the observed cells
+    at points + offsets * normals (each offset at each point; outside the window: unobserved)."""
+    size = raster.shape[-1]
+    xy = points[:, None, :] + offsets[None, :, None] * normals[:, None, :]
+    colrow = np.floor(xy.reshape(-1, 2) * (1.0 / resolution_m) + size / 2).astype(np.intp)
+    inside = np.flatnonzero(((colrow >= 0) & (colrow < size)).all(axis=1))
+    flat = colrow[inside, 1] * size + colrow[inside, 0]
+    cells = raster.reshape(raster.shape[0], -1)
+    observed = cells[DENSITY_CHANNEL].take(flat) > 0
+    flat, inside = flat[observed], inside[observed]
+    low, high = MIN_HEIGHT_LOW_M, MIN_HEIGHT_HIGH_M
+    return (cells[INTENSITY_CHANNEL].take(flat),
+            cells[MIN_HEIGHT_CHANNEL].take(flat) * (high - low) + low,
+            offsets[inside % len(offsets)], inside // len(offsets))
+
+
+_ON = np.linspace(-PAINT_HALF_WIDTH_M, PAINT_HALF_WIDTH_M, 7)
+_BESIDE = np.linspace(*ROAD_BESIDE_M, 8)
+_OFFSETS = np.concatenate([_ON, -_BESIDE, _BESIDE])
+
+
+def _contrast(values: np.ndarray, z: np.ndarray, offset: np.ndarray) -> float:
+    """paint_contrast from one lane's observed cells."""
+    on = np.abs(offset) <= PAINT_HALF_WIDTH_M
+    if np.count_nonzero(on) < MIN_CELLS:
+        return float('nan')
+    road = ~on & (np.abs(z - np.median(z[on])) < LEVEL_M)
+    sides = [values[road & (offset < 0)], values[road & (offset > 0)]]
+    level = [np.median(side) for side in sides if side.size >= MIN_CELLS]
+    if not level or max(level) <= 0:
+        return float('nan')
+    return float(np.percentile(values[on], PERCENTILE) / max(level))
+
+
+def paint_contrasts(lanes: list[np.ndarray], raster: np.ndarray,
+                    resolution_m: float) -> np.ndarray:
+    """Per lane, how far its brightest returns stand out from the road on its brighter side
+    (PERCENTILE of the cells on it / that side's median); NaN without evidence either way.
+    One gather for all lanes: the per-call overhead, not the samples, is the cost."""
+    along = [_along(np.asarray(lane, dtype=np.float64)) for lane in lanes]
+    counts = np.array([len(points) for points, _ in along])
+    if not counts.sum():
+        return np.full(len(lanes), np.nan)
+    values, z, offset, point = _cells(raster, np.concatenate([p for p, _ in along]),
+                                      np.concatenate([n for _, n in along]), _OFFSETS,
+                                      resolution_m)
+    bounds = np.searchsorted(point, np.concatenate([[0], np.cumsum(counts)]))
+    return np.array([_contrast(values[i:j], z[i:j], offset[i:j]) if n >= 2 else np.nan
+                     for i, j, n in zip(bounds[:-1], bounds[1:], counts)])
+
+
+def paint_contrast(lane: np.ndarray, raster: np.ndarray, resolution_m: float) -> float:
+    """paint_contrasts of one lane."""
+    return float(paint_contrasts([lane], raster, resolution_m)[0])
+
+
+def keep_painted(lanes: list[np.ndarray], confidences: np.ndarray, raster: np.ndarray,
+                 resolution_m: float, min_contrast: float) -> tuple[list[np.ndarray], np.ndarray]:
+    """The lanes (with their confidences) whose paint_contrast is >= min_contrast or unknown.
+
+    min_contrast <= 0 returns the lanes unchanged.
+    """
+    if min_contrast <= 0 or not lanes:
+        return lanes, confidences
+    keep = ~(paint_contrasts(lanes, raster, resolution_m) < min_contrast)  # NaN: kept
+    return [lane for lane, k in zip(lanes, keep) if k], np.asarray(confidences)[keep]

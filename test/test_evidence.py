@@ -1,9 +1,18 @@
-"""fhld_ros.evidence: lanes are cut where no observed cell lies within reach."""
+"""fhld_ros.evidence: lanes are cut where no observed cell lies within reach, and dropped
+where no paint shows."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from fhld_ros.evidence import _integral, _observed_count, keep_observed
+from fhld_ros.bev import MIN_HEIGHT_HIGH_M, MIN_HEIGHT_LOW_M
+from fhld_ros.evidence import (
+    _integral,
+    _observed_count,
+    keep_observed,
+    keep_painted,
+    paint_contrast,
+)
 
 RES = 0.04
 SIZE = 640
@@ -73,3 +82,71 @@ def test_reach_zero_or_no_lanes_change_nothing():
     lanes, conf = keep_observed([lane], np.array([0.7]), raster_observed(0, 1), RES, reach_m=0)
     assert lanes[0] is lane and conf.tolist() == [0.7]
     assert keep_observed([], np.zeros(0), raster_observed(0, 1), RES, 1.0)[0] == []
+
+
+# paint evidence: a road of mean intensity ROAD at height ROAD_Z, observed everywhere
+ROAD, ROAD_Z = 0.05, -1.8
+
+
+def road_raster() -> np.ndarray:
+    raster = np.zeros((4, SIZE, SIZE), dtype=np.float32)
+    raster[0] = ROAD
+    raster[1] = 0.5
+    raster[3] = (ROAD_Z - MIN_HEIGHT_LOW_M) / (MIN_HEIGHT_HIGH_M - MIN_HEIGHT_LOW_M)
+    return raster
+
+
+def rows_between(y0: float, y1: float) -> slice:
+    """Raster rows of window y in [y0, y1)."""
+    return slice(int(np.floor((y0 + HALF) / RES)), int(np.floor((y1 + HALF) / RES)))
+
+
+def test_a_painted_line_keeps_its_lane_and_plain_road_does_not():
+    raster = road_raster()
+    raster[0, rows_between(1.68, 1.84)] = 2 * ROAD  # a line twice as bright as the road
+    painted, plain = straight_lane(y=1.75), straight_lane(y=-1.75)
+    assert paint_contrast(painted, raster, RES) == pytest.approx(2.0)
+    assert paint_contrast(plain, raster, RES) == pytest.approx(1.0)
+    lanes, conf = keep_painted([painted, plain], np.array([0.9, 0.99]), raster, RES, 1.3)
+    assert len(lanes) == 1 and lanes[0] is painted and conf.tolist() == [0.9]
+    # a ratio: the sensor's units and gain do not change it
+    raster[0] *= 7.0
+    assert paint_contrast(painted, raster, RES) == pytest.approx(2.0)
+
+
+def test_dashes_are_paint():
+    raster = road_raster()
+    dashes = rows_between(1.68, 1.84), (np.arange(SIZE) * RES) % 12.0 < 3.0  # 3 m every 12 m
+    raster[0][dashes[0], dashes[1]] = 1.6 * ROAD
+    assert paint_contrast(straight_lane(y=1.75), raster, RES) == pytest.approx(1.6)
+
+
+def test_a_strip_darker_than_the_road_on_one_side_is_no_line():
+    # a strip 1.5 x the road along a band twice as bright at the road's height (a concrete
+    # gutter, a light verge): brighter than one side only
+    raster = road_raster()
+    raster[0, rows_between(4.84, 5.2)] = 1.5 * ROAD
+    raster[0, rows_between(5.2, 6.5)] = 2 * ROAD
+    lane = straight_lane(y=5.0)
+    assert paint_contrast(lane, raster, RES) == pytest.approx(0.75)
+    assert keep_painted([lane], np.array([0.98]), raster, RES, 1.3)[0] == []
+    # the same band raised 0.15 m (a sidewalk behind a curb) is not road: the strip stands out
+    # from the road on the other side
+    raster[3, rows_between(5.2, 6.5)] += 0.15 / (MIN_HEIGHT_HIGH_M - MIN_HEIGHT_LOW_M)
+    assert paint_contrast(lane, raster, RES) == pytest.approx(1.5)
+
+
+def test_without_evidence_either_way_a_lane_stays():
+    raster = road_raster()
+    raster[1, rows_between(-3.0, 3.0)] = 0.0  # nothing observed on or beside the lane
+    lane = straight_lane(y=0.0)
+    assert np.isnan(paint_contrast(lane, raster, RES))
+    assert len(keep_painted([lane], np.array([0.8]), raster, RES, 1.3)[0]) == 1
+    assert np.isnan(paint_contrast(lane[:1], road_raster(), RES))  # a single point
+
+
+def test_min_contrast_zero_or_no_lanes_change_nothing():
+    lane = straight_lane(y=-1.75)
+    lanes, conf = keep_painted([lane], np.array([0.7]), road_raster(), RES, 0.0)
+    assert lanes[0] is lane and conf.tolist() == [0.7]
+    assert keep_painted([], np.zeros(0), road_raster(), RES, 1.3)[0] == []

@@ -5,9 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from fhld_ros.detectors import CURVE_POINTS, fhld_variants
+from fhld_ros.detectors import CURVE_POINTS, fhld_variants, with_evidence
 from fhld_ros.evaluation import metrics
-from fhld_ros.evidence import keep_observed
 from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint
 from fhld_ros.model.config import FhldConfig
 from fhld_ros.ros.parameters import DetectorParams
@@ -65,9 +64,8 @@ def test_one_detection_gives_every_testset_variant(windows, one_torch_thread):
         raster = torch.from_numpy(sample.raster).unsqueeze(0)
         for name, refine in (('fhld', True), ('fhld-model-z', False)):
             det = model.detect(raster, refine_heights=refine)[0]
-            lanes = keep_observed(det.lanes, det.confidences, sample.raster,
-                                  sample.window.spec.resolution_m,
-                                  DetectorParams().evidence_reach_m)[0]
+            lanes = with_evidence(det.lanes, det.confidences, sample.window,
+                                  DetectorParams())[0]
             assert len(found[name]) == len(lanes)
             for got, want in zip(found[name], lanes):
                 np.testing.assert_array_equal(got, want)

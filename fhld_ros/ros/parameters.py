@@ -30,6 +30,7 @@ _RANGES: dict[str, tuple[bool, float, bool, float]] = {
     'score_threshold': (False, 0, True, 1),
     'local_refine_steps': (True, 0, True, 64),
     'evidence_reach_m': (False, 0, True, 100),
+    'min_paint_contrast': (False, 0, True, 100),
     'size_px': (True, 32, True, 4096),  # FhldConfig's bound
     'resolution_m': (False, 0, False, 10),
     'accumulate_sec': (False, 0, True, 60),
@@ -89,6 +90,10 @@ class DetectorParams:
     evidence_reach_m: float = documented(
         1.5, 'FHLD lanes are cut where no return lies within this distance (m) in the window: '
         'no lanes over ground the sensor never saw (0 = off)')
+    min_paint_contrast: float = documented(
+        1.3, 'FHLD lanes whose brightest returns are not this many times as bright as the road '
+        'on each side of them (at their height) are dropped: no lanes along bare curbs, seams '
+        'or light strips (0 = off)')
     size_px: int = documented(640, 'BEV window size in cells (square)')
     resolution_m: float = documented(0.04, 'BEV cell size in metres')
     accumulate_sec: float = documented(
