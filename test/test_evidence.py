@@ -9,6 +9,7 @@ from fhld_ros.bev import MIN_HEIGHT_HIGH_M, MIN_HEIGHT_LOW_M
 from fhld_ros.evidence import (
     _integral,
     _observed_count,
+    _quantile,
     keep_observed,
     keep_painted,
     paint_contrast,
@@ -150,3 +151,10 @@ def test_min_contrast_zero_or_no_lanes_change_nothing():
     lanes, conf = keep_painted([lane], np.array([0.7]), road_raster(), RES, 0.0)
     assert lanes[0] is lane and conf.tolist() == [0.7]
     assert keep_painted([], np.zeros(0), road_raster(), RES, 1.3)[0] == []
+
+
+@pytest.mark.parametrize('size', [1, 2, 7, 10, 501])
+@pytest.mark.parametrize('q', [0.0, 0.5, 0.95, 1.0])
+def test_partition_quantile_is_numpys(size, q):
+    values = np.random.default_rng(size).gamma(2.0, size=size).astype(np.float32)
+    assert _quantile(values, q) == pytest.approx(float(np.quantile(values, q)), rel=1e-6)
