@@ -149,7 +149,7 @@ def test_shipped_training_configs_load(path):
     cfg = load_config(path)
     train, test = cache_settings(cfg, 'train'), cache_settings(cfg, 'test')
     assert not (test.sensor_variation or test.road_look or test.bare_curbs)  # held out as is
-    reshared = ('train_cpu_unmarked.yaml', 'train_cpu_sparse_bright.yaml')
+    reshared = ('train_cpu_unmarked.yaml', 'train_cpu_sparse_bright.yaml', 'train_cpu_b1.yaml')
     assert train.bare_curbs == (path.name in ('train_cpu_barecurbs.yaml', *reshared))
     assert (train.no_markings_share != test.no_markings_share) == (path.name in reshared)
     assert test == dataclasses.replace(test, **SHARES)  # the test cache keeps the defaults
