@@ -89,11 +89,11 @@ class DetectorParams:
         'and classified again this many times (0 = on the global curves only)')
     evidence_reach_m: float = documented(
         1.5, 'FHLD lanes are cut where no return lies within this distance (m) in the window: '
-        'no lanes over ground the sensor never saw (0 = off)')
+        'no lanes over ground the sensor never saw (0.0 = off)')
     min_paint_contrast: float = documented(
         1.3, 'FHLD lanes whose brightest returns are not this many times as bright as the road '
         'on each side of them (at their height) are dropped: no lanes along bare curbs, seams '
-        'or light strips (0 = off)')
+        'or light strips (0.0 = off)')
     size_px: int = documented(640, 'BEV window size in cells (square)')
     resolution_m: float = documented(0.04, 'BEV cell size in metres')
     accumulate_sec: float = documented(
