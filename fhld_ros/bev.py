@@ -66,15 +66,16 @@ class BevSpec:
         return (colrow - self.size_px / 2) * self.resolution_m
 
 
-def min_height_m(raster: np.ndarray) -> np.ndarray:
-    """(..., 4, H, W) raster -> (..., H, W) per-cell minimum height in metres, NaN where empty.
+def decode_min_height(channel: np.ndarray) -> np.ndarray:
+    """Min-height channel values (any shape) -> metres: the inverse of the encoding inside its
+    clip range (heights outside [MIN_HEIGHT_LOW_M, MIN_HEIGHT_HIGH_M] come back clipped)."""
+    return channel * (MIN_HEIGHT_HIGH_M - MIN_HEIGHT_LOW_M) + MIN_HEIGHT_LOW_M
 
-    The inverse of the min-height channel inside its clip range (heights outside
-    [MIN_HEIGHT_LOW_M, MIN_HEIGHT_HIGH_M] come back clipped).
-    """
+
+def min_height_m(raster: np.ndarray) -> np.ndarray:
+    """(..., 4, H, W) raster -> (..., H, W) per-cell minimum height in metres, NaN where empty."""
     raster = np.asarray(raster)
-    z = raster[..., 3, :, :] * (MIN_HEIGHT_HIGH_M - MIN_HEIGHT_LOW_M) + MIN_HEIGHT_LOW_M
-    return np.where(raster[..., 1, :, :] > 0, z, np.nan)
+    return np.where(raster[..., 1, :, :] > 0, decode_min_height(raster[..., 3, :, :]), np.nan)
 
 
 class _Scratch:

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fhld_ros.bev import MIN_HEIGHT_HIGH_M, MIN_HEIGHT_LOW_M
+from fhld_ros.bev import decode_min_height
 
 INTENSITY_CHANNEL, DENSITY_CHANNEL, MIN_HEIGHT_CHANNEL = 0, 1, 3
 PAINT_STEP_M = 0.1  # the lane is sampled this often along its length
@@ -34,6 +34,9 @@ ROAD_BESIDE_M = (0.35, 1.0)  # the road surface on each side, clear of the paint
 LEVEL_M = 0.05  # a cell beside the lane is road when its lowest return is this close in height
 PERCENTILE = 95.0  # dashed lines: paint covers a quarter of a lane's length, or less
 MIN_CELLS = 10  # fewer observed cells on the lane (or on a side): no evidence either way
+# lateral offsets sampled at each point: 7 across the paint, 8 on the road to each side
+_OFFSETS = np.concatenate([np.linspace(-PAINT_HALF_WIDTH_M, PAINT_HALF_WIDTH_M, 7),
+                           -np.linspace(*ROAD_BESIDE_M, 8), np.linspace(*ROAD_BESIDE_M, 8)])
 
 
 def _integral(raster: np.ndarray) -> np.ndarray:
@@ -113,15 +116,9 @@ def _cells(raster: np.ndarray, points: np.ndarray, normals: np.ndarray, offsets:
     observed = cells[DENSITY_CHANNEL].take(flat) > 0
     flat, inside = flat[observed], inside[observed]
     point, which = np.divmod(inside, len(offsets))
-    low, high = MIN_HEIGHT_LOW_M, MIN_HEIGHT_HIGH_M
     return (cells[INTENSITY_CHANNEL].take(flat),
-            cells[MIN_HEIGHT_CHANNEL].take(flat) * (high - low) + low,
+            decode_min_height(cells[MIN_HEIGHT_CHANNEL].take(flat)),
             offsets.take(which), point)
-
-
-_ON = np.linspace(-PAINT_HALF_WIDTH_M, PAINT_HALF_WIDTH_M, 7)
-_BESIDE = np.linspace(*ROAD_BESIDE_M, 8)
-_OFFSETS = np.concatenate([_ON, -_BESIDE, _BESIDE])
 
 
 def _quantile(values: np.ndarray, q: float) -> float:
