@@ -117,6 +117,36 @@ def test_a_backbone_student_learns_the_teachers_features(tmp_path):
         Teacher(str(path), FhldDetector(MODEL), part='heads')
 
 
+def test_a_features_student_learns_all_the_teacher_computes_before_the_local_head(tmp_path):
+    torch.manual_seed(0)
+    path = save_checkpoint(tmp_path / 'stem5.pt',
+                           FhldDetector(dataclasses.replace(TEACHER, stem_kernel=5)).eval(), 'x')
+    student = FhldDetector(MODEL)  # a 3 x 3 stem and one encoder layer fewer
+    teacher = Teacher(str(path), student, part='features')
+    trained = ('backbone.', 'local_features.', 'global_branch.')
+    for name, p in student.named_parameters():
+        assert p.requires_grad == name.startswith(trained), name
+    head = {k: v.clone() for k, v in student.state_dict().items() if k.startswith('local_head.')}
+    assert head
+    opt = torch.optim.Adam([p for p in student.parameters() if p.requires_grad], lr=1e-3)
+    first = teacher.losses(student, rasters())
+    assert set(first) >= {'feature_8', 'feature_16', 'feature_32', 'feature_local', 'loss_cls',
+                          'loss_curve'}
+    for _ in range(30):
+        loss = teacher.losses(student, rasters())['loss']
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert loss.item() < 0.5 * first['loss'].item()
+    after = student.state_dict()
+    assert all(torch.equal(value, after[key]) for key, value in head.items())
+    twin = load_checkpoint(path).model
+    assert Teacher(str(path), twin, part='features').losses(twin, rasters())['loss'] < 1e-5
+    with pytest.raises(ValueError, match=r'only in its backbone, local_features, global_branch'):
+        Teacher(str(path), FhldDetector(dataclasses.replace(MODEL, local_hidden=16)),
+                part='features')
+
+
 def test_the_stem_fit_recovers_a_kernel_of_its_own_size_and_approximates_a_larger_one():
     raster = rasters(1)
     torch.manual_seed(2)

@@ -94,8 +94,8 @@ class TrainSection:
     # Only the weights: the model section must build the same layers; a resume ignores it
     init: str = ''
     # a checkpoint to distil (training/distill.py): the model section's `distill` part
-    # ('global_branch' or 'backbone') learns its outputs, every other layer is copied from it
-    # and frozen; '' = train on the labels
+    # ('global_branch', 'backbone' or 'features') learns its outputs, every other layer is
+    # copied from it and frozen; '' = train on the labels
     teacher: str = ''
     distill: str = 'global_branch'
     # global_branch: weights of the lane-probability (KL) and curve (L1) terms (distill.py)

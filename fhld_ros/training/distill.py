@@ -17,6 +17,12 @@ other layer from the teacher by name and shape, frozen:
 - 'backbone': the student's backbone (e.g. a 3 x 3 stem) learns the teacher's feature maps at
   strides 4-32 (mean squared error relative to each map's mean square); both branches are the
   teacher's.
+- 'features': everything the served features graph computes learns at once (e.g. a 3 x 3 stem
+  and one encoder layer): the backbone's maps at strides 8-32, the local map that the local
+  head reads, and the global branch's per-query outputs as for 'global_branch'. Only the local
+  head is the teacher's, frozen: it reads a local map that is held to the teacher's, while the
+  layers that make that map may all move to make up for each other (with 'backbone' the frozen
+  branches could not absorb what the changed backbone got wrong).
 
 Where the student's part has a layer of the teacher's name and shape it starts from it. A stem
 of another kernel size starts from the least-squares fit of the teacher's stem convolution on
@@ -33,7 +39,10 @@ from torch import Tensor
 from fhld_ros.model.checkpoint import load_checkpoint
 from fhld_ros.model.detector import FhldDetector
 
-PARTS = ('global_branch', 'backbone')
+PARTS = ('global_branch', 'backbone', 'features')
+# the layers each part trains (state-dict prefixes); every other layer is the teacher's, frozen
+_TRAINED = {'global_branch': ('global_branch.',), 'backbone': ('backbone.',),
+            'features': ('backbone.', 'local_features.', 'global_branch.')}
 # curve numbers are normalised window coordinates (0.01 = 26 cm) and heights in metres
 CURVE_WEIGHT = 10.0
 STEM = 'backbone.stem.conv.weight'
@@ -67,17 +76,18 @@ class Teacher:
         source, target = teacher.state_dict(), student.state_dict()
         matching = {k: v for k, v in source.items()
                     if k in target and target[k].shape == v.shape}
-        prefix = part + '.'
-        differs = sorted(k for k in target if not k.startswith(prefix) and k not in matching)
+        prefixes = _TRAINED[part]
+        differs = sorted(k for k in target if not k.startswith(prefixes) and k not in matching)
         if differs:
+            parts = ', '.join(prefix[:-1] for prefix in prefixes)
             raise ValueError(f'train.teacher {path}: the student may differ from its teacher '
-                             f'only in its {part} (train.distill); it differs at {differs[0]}')
+                             f'only in its {parts} (train.distill); it differs at {differs[0]}')
         if copy_weights:
             student.load_state_dict(matching, strict=False)
         # fitted on the first batch (losses); a resumed run has it in its weights already
-        self.stem_to_fit = copy_weights and part == 'backbone' and STEM not in matching
+        self.stem_to_fit = copy_weights and part != 'global_branch' and STEM not in matching
         for name, p in student.named_parameters():
-            p.requires_grad_(name.startswith(prefix))
+            p.requires_grad_(name.startswith(prefixes))
 
     def losses(self, student: FhldDetector, raster: Tensor,
                lanes: list[list] | None = None) -> dict[str, Tensor]:
@@ -91,14 +101,21 @@ class Teacher:
             self.stem_to_fit = False
         if self.part == 'backbone':
             return self._feature_losses(student, raster)
+        if self.part == 'features':
+            return self._features_graph_losses(student, raster, lanes)
         with torch.no_grad():  # one backbone pass serves both: it is the same, and frozen
             feats = student.backbone(raster)
             t_logits, t_curves = self.model.global_branch(feats[32])
         s_logits, s_curves = student.global_branch(feats[32])
+        return self._query_losses(s_logits, s_curves, t_logits, t_curves, lanes)
+
+    def _query_losses(self, s_logits: Tensor, s_curves: Tensor, t_logits: Tensor,
+                      t_curves: Tensor, lanes: list[list] | None) -> dict[str, Tensor]:
+        """The global branch's per-query terms: lane probability (KL) and curve (L1)."""
         p_lane = t_logits.softmax(-1)  # (layers, B, N, 2)
         target, weight = p_lane, torch.ones_like(p_lane[..., 0])
         if self.no_lane_weight > 0 and lanes is not None:
-            empty = torch.tensor([len(window) == 0 for window in lanes], device=raster.device)
+            empty = torch.tensor([len(window) == 0 for window in lanes], device=p_lane.device)
             target = torch.where(empty[:, None, None], p_lane.new_tensor([1.0, 0.0]), p_lane)
             weight = torch.where(empty[:, None], self.no_lane_weight, weight)
         kl = (target * (target.clamp_min(1e-8).log() - s_logits.log_softmax(-1))).sum(-1)
@@ -113,12 +130,30 @@ class Teacher:
         with torch.no_grad():
             target = self.model.backbone(raster)
         feats = student.backbone(raster)
-        per_stride = {s: (feats[s] - t).pow(2).mean() / t.pow(2).mean().clamp_min(1e-12)
-                      for s, t in target.items()}
+        per_stride = {s: relative_error(feats[s], t) for s, t in target.items()}
         loss = sum(per_stride.values(), torch.zeros((), device=raster.device))
         zero = torch.zeros((), device=raster.device)  # the progress bar's class/curve columns
         return {'loss': loss, 'loss_cls': zero, 'loss_curve': zero,
                 **{f'feature_{s}': value for s, value in per_stride.items()}}
+
+    def _features_graph_losses(self, student: FhldDetector, raster: Tensor,
+                               lanes: list[list] | None) -> dict[str, Tensor]:
+        with torch.no_grad():
+            target = self.model.backbone(raster)
+            t_logits, t_curves = self.model.global_branch(target[32])
+            t_local = self.model.local_features(target)
+        feats = student.backbone(raster)
+        s_logits, s_curves = student.global_branch(feats[32])
+        errors = {f'feature_{s}': relative_error(feats[s], target[s]) for s in (8, 16, 32)}
+        errors['feature_local'] = relative_error(student.local_features(feats), t_local)
+        losses = self._query_losses(s_logits, s_curves, t_logits, t_curves, lanes)
+        losses['loss'] = losses['loss'] + sum(errors.values())
+        return {**losses, **errors}
+
+
+def relative_error(value: Tensor, target: Tensor) -> Tensor:
+    """Mean squared error relative to the target's mean square (maps of any scale count alike)."""
+    return (value - target).pow(2).mean() / target.pow(2).mean().clamp_min(1e-12)
 
 
 @torch.no_grad()
