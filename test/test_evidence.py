@@ -7,9 +7,9 @@ import pytest
 
 from fhld_ros.bev import MIN_HEIGHT_HIGH_M, MIN_HEIGHT_LOW_M
 from fhld_ros.evidence import (
-    _integral,
     _observed_count,
     _quantile,
+    _row_prefix,
     keep_observed,
     keep_painted,
     paint_contrast,
@@ -39,11 +39,11 @@ def test_observed_counts_match_a_brute_force_dilation():
     raster[1][rng.random((48, 48)) < 0.01] = 1.0
     occupied = np.argwhere(raster[1] > 0)
     rows, cols = np.mgrid[:48, :48]
-    for reach in (0, 1, 3):
+    for reach in (0, 1, 3, 50):
         expected = np.zeros((48, 48), dtype=bool)
         for r, c in occupied:
             expected |= (np.abs(rows - r) <= reach) & (np.abs(cols - c) <= reach)
-        counts = _observed_count(_integral(raster), rows, cols, reach)
+        counts = _observed_count(_row_prefix(raster), rows, cols, reach).reshape(rows.shape)
         np.testing.assert_array_equal(counts > 0, expected)
 
 
