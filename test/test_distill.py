@@ -90,6 +90,23 @@ def test_a_student_that_changes_the_frozen_layers_is_refused(teacher_path):
                 FhldDetector(dataclasses.replace(MODEL, intensity_encoding='absolute')))
 
 
+def learn_for_30_steps(teacher: Teacher, student: FhldDetector,
+                       frozen: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """Train the student's trainable layers; the loss must halve and `frozen` stay as it is.
+    Returns the first step's losses."""
+    opt = torch.optim.Adam([p for p in student.parameters() if p.requires_grad], lr=1e-3)
+    first = teacher.losses(student, rasters())
+    for _ in range(30):
+        loss = teacher.losses(student, rasters())['loss']
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert loss.item() < 0.5 * first['loss'].item()
+    after = student.state_dict()
+    assert all(torch.equal(value, after[key]) for key, value in frozen.items())
+    return first
+
+
 def test_a_backbone_student_learns_the_teachers_features(tmp_path):
     torch.manual_seed(0)
     path = save_checkpoint(tmp_path / 'stem5.pt',
@@ -102,17 +119,8 @@ def test_a_backbone_student_learns_the_teachers_features(tmp_path):
         assert p.requires_grad == name.startswith('backbone.'), name
     heads = {k: v.clone() for k, v in student.state_dict().items()
              if not k.startswith('backbone.')}
-    opt = torch.optim.Adam([p for p in student.parameters() if p.requires_grad], lr=1e-3)
-    first = teacher.losses(student, rasters())
+    first = learn_for_30_steps(teacher, student, heads)
     assert set(first) >= {'feature_4', 'feature_8', 'feature_16', 'feature_32'}
-    for _ in range(30):
-        loss = teacher.losses(student, rasters())['loss']
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-    assert loss.item() < 0.5 * first['loss'].item()
-    after = student.state_dict()
-    assert all(torch.equal(value, after[key]) for key, value in heads.items())
     with pytest.raises(ValueError, match='train.distill must be one of'):
         Teacher(str(path), FhldDetector(MODEL), part='heads')
 
@@ -128,18 +136,9 @@ def test_a_features_student_learns_all_the_teacher_computes_before_the_local_hea
         assert p.requires_grad == name.startswith(trained), name
     head = {k: v.clone() for k, v in student.state_dict().items() if k.startswith('local_head.')}
     assert head
-    opt = torch.optim.Adam([p for p in student.parameters() if p.requires_grad], lr=1e-3)
-    first = teacher.losses(student, rasters())
+    first = learn_for_30_steps(teacher, student, head)
     assert set(first) >= {'feature_8', 'feature_16', 'feature_32', 'feature_local', 'loss_cls',
                           'loss_curve'}
-    for _ in range(30):
-        loss = teacher.losses(student, rasters())['loss']
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-    assert loss.item() < 0.5 * first['loss'].item()
-    after = student.state_dict()
-    assert all(torch.equal(value, after[key]) for key, value in head.items())
     twin = load_checkpoint(path).model
     assert Teacher(str(path), twin, part='features').losses(twin, rasters())['loss'] < 1e-5
     with pytest.raises(ValueError, match=r'only in its backbone, local_features, global_branch'):
