@@ -39,10 +39,10 @@ from torch import Tensor
 from fhld_ros.model.checkpoint import load_checkpoint
 from fhld_ros.model.detector import FhldDetector
 
-PARTS = ('global_branch', 'backbone', 'features')
 # the layers each part trains (state-dict prefixes); every other layer is the teacher's, frozen
 _TRAINED = {'global_branch': ('global_branch.',), 'backbone': ('backbone.',),
             'features': ('backbone.', 'local_features.', 'global_branch.')}
+PARTS = tuple(_TRAINED)
 # curve numbers are normalised window coordinates (0.01 = 26 cm) and heights in metres
 CURVE_WEIGHT = 10.0
 STEM = 'backbone.stem.conv.weight'
@@ -85,7 +85,7 @@ class Teacher:
         if copy_weights:
             student.load_state_dict(matching, strict=False)
         # fitted on the first batch (losses); a resumed run has it in its weights already
-        self.stem_to_fit = copy_weights and part != 'global_branch' and STEM not in matching
+        self.stem_to_fit = copy_weights and STEM.startswith(prefixes) and STEM not in matching
         for name, p in student.named_parameters():
             p.requires_grad_(name.startswith(prefixes))
 
