@@ -18,9 +18,15 @@ training/serving skew. Conventions (fixed, docs/design.md §3):
 from __future__ import annotations
 
 import math
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
+
+from fhld_ros.raster_kernels import encode_cells, scatter_points
 
 # --- normalisation constants of the channel formulas (RasterAccumulator.encode) ---
 DENSITY_REF_COUNT = 16  # points per cell that saturate the density channel
@@ -30,6 +36,7 @@ MIN_HEIGHT_HIGH_M = 1.0  # min height mapped to 1
 EMPTY_MIN_HEIGHT = 1.0  # min-height channel of an empty cell: min of no points = +inf, clipped
 HEIGHT_SHIFT_M = -1.8  # nominal road height: heights are summed relative to it (float32 sums)
 Z_REBASE_M = 2.0  # the grid re-bases its height reference when the road moves this much
+MAX_RASTER_THREADS = 4  # a raster is memory-bound: more threads than this gain nothing
 CHANNELS = ('mean_intensity', 'density', 'height_variance', 'min_height')
 
 
@@ -78,20 +85,6 @@ def min_height_m(raster: np.ndarray) -> np.ndarray:
     return np.where(raster[..., 1, :, :] > 0, decode_min_height(raster[..., 3, :, :]), np.nan)
 
 
-class _Scratch:
-    """Work arrays reused across calls: fresh multi-megabyte temporaries cost page faults."""
-
-    def __init__(self) -> None:
-        self._arrays: dict[str, np.ndarray] = {}
-
-    def get(self, name: str, shape: int | tuple[int, ...], dtype: type) -> np.ndarray:
-        size = math.prod(shape) if isinstance(shape, tuple) else shape
-        buf = self._arrays.get(name)
-        if buf is None or buf.shape[0] < size:
-            buf = self._arrays[name] = np.empty(size + size // 4, dtype)  # growth headroom
-        return buf[:size].reshape(shape)
-
-
 def window_affine(cos: float, sin: float, offset: np.ndarray, spec: BevSpec) -> np.ndarray:
     """(2, 3) float32 map [x, y, 1] -> bordered pixel coordinates (col + 1, row + 1).
 
@@ -115,24 +108,6 @@ def pixel_coords(xy: np.ndarray, affine: np.ndarray, out: np.ndarray,
     return out
 
 
-def pack_count_intensity(intensity01: np.ndarray) -> np.ndarray:
-    """complex64 1 + i*intensity: one scatter-add then yields both count and intensity sum."""
-    packed = np.empty(intensity01.shape[0], dtype=np.complex64)
-    pairs = packed.view(np.float32).reshape(-1, 2)
-    pairs[:, 0] = 1.0
-    pairs[:, 1] = intensity01
-    return packed
-
-
-def pack_heights(e: np.ndarray) -> np.ndarray:
-    """complex64 e + i*e^2: one scatter-add yields both height sums."""
-    packed = np.empty(e.shape[0], dtype=np.complex64)
-    pairs = packed.view(np.float32).reshape(-1, 2)
-    pairs[:, 0] = e
-    np.multiply(e, e, out=pairs[:, 1])
-    return packed
-
-
 # density depends only on the count and saturates at DENSITY_REF_COUNT: a lookup table
 _DENSITY_LUT = (np.log1p(np.arange(DENSITY_REF_COUNT + 1)) / math.log1p(DENSITY_REF_COUNT)
                 ).astype(np.float32)
@@ -142,40 +117,43 @@ class RasterAccumulator:
     """Per-cell statistics of one window, in arrays reused across windows.
 
     The arrays have a one-cell border: points outside the window are clipped into it instead of
-    being compacted away, so adding a sweep is a few elementwise passes and three ufunc.at
-    scatters (numpy's fast path: matching dtypes, contiguous). Sums are float32 and packed in
-    pairs as complex64: (count, intensity) and (e, e^2), heights e relative to a reference
-    near the road (variance is shift-invariant; small e keeps E[e^2] - E[e]^2 accurate).
+    being compacted away. Per cell: float32 sums of 1, intensity, e and e^2 (heights e relative
+    to a reference near the road: variance is shift-invariant, and small e keeps E[e^2] -
+    E[e]^2 accurate) and the minimum e. The loops are compiled (raster_kernels.py); with
+    threads=2 each of two threads takes half of the rows, so every cell still sums its points
+    in the order they were added.
     """
 
-    def __init__(self, spec: BevSpec) -> None:
+    def __init__(self, spec: BevSpec, threads: int = 2) -> None:
+        if not 1 <= threads <= MAX_RASTER_THREADS:
+            raise ValueError(f'RasterAccumulator threads must be 1..{MAX_RASTER_THREADS}, '
+                             f'got {threads}')
         self.spec = spec
         side = spec.size_px + 2
-        self.count_intensity = np.zeros(side * side, dtype=np.complex64)
-        self.heights = np.zeros(side * side, dtype=np.complex64)
+        self.sums = np.zeros((side * side, 4), dtype=np.float32)
         self.e_min = np.full(side * side, np.inf, dtype=np.float32)
-        self.scratch = _Scratch()
+        self._bands = _row_bands(side, threads)
+        _load_kernels()
 
     def clear(self) -> None:
-        self.count_intensity.fill(0)
-        self.heights.fill(0)
+        self.sums.fill(0)
         self.e_min.fill(np.inf)
 
-    def add(self, xy: np.ndarray, affine: np.ndarray, count_intensity: np.ndarray,
-            heights: np.ndarray, e: np.ndarray) -> None:
-        """Add points: xy (2, N) float32 mapped to pixels by affine (2, 3); count_intensity =
-        1 + i*intensity and heights = e + i*e^2 (complex64), e = z - z_ref (float32)."""
-        n, side, get = xy.shape[1], self.spec.size_px + 2, self.scratch.get
-        pix = pixel_coords(xy, affine, get('pix', (2, n), np.float32), get('tmp', n, np.float32))
-        np.clip(pix, 0, side - 1, out=pix)  # outside the window -> the border cells
-        cells = get('cells', (2, n), np.intp)
-        np.copyto(cells, pix, casting='unsafe')  # non-negative: trunc == floor
-        flat = cells[1]
-        flat *= side
-        flat += cells[0]
-        np.add.at(self.count_intensity, flat, count_intensity)
-        np.add.at(self.heights, flat, heights)
-        np.minimum.at(self.e_min, flat, e)
+    def add(self, xy: np.ndarray, affine: np.ndarray, intensity01: np.ndarray,
+            e: np.ndarray) -> None:
+        """Add points: xy (2, N) float32 mapped to pixels by affine (2, 3); intensity01 and
+        e = z - z_ref (N,) float32."""
+        self.add_all([(xy, affine, intensity01, e)])
+
+    def add_all(self, sources: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
+                ) -> None:
+        """add() for each (xy, affine, intensity01, e) in order, one hand-off per thread."""
+        side = self.spec.size_px + 2
+
+        def band(rows: tuple[int, int]) -> None:
+            for xy, affine, intensity01, e in sources:
+                scatter_points(self.sums, self.e_min, side, *rows, xy, affine, intensity01, e)
+        self._in_bands(band, self._bands)
 
     def encode(self, z_ref: float) -> np.ndarray:
         """The (4, H, W) float32 raster of the points added since clear(); z = e + z_ref.
@@ -186,31 +164,52 @@ class RasterAccumulator:
         LOW), 0, 1). For n = 0 the sums are 0 (channels 0-2 are 0) and min z is +inf, so the
         min height saturates at 1 (EMPTY_MIN_HEIGHT).
         """
-        size, f32, get = self.spec.size_px, np.float32, self.scratch.get
-        inner = (slice(1, size + 1), slice(1, size + 1))
-        count_intensity = self.count_intensity.reshape(size + 2, -1)[inner]
-        heights = self.heights.reshape(size + 2, -1)[inner]
+        size, f32 = self.spec.size_px, np.float32
         raster = np.empty((4, size, size), dtype=f32)
-        # 1 / n; 1e30 for empty cells, whose sums are 0 (counts are whole numbers, so adding
-        # 1e-30 changes no other cell)
-        inv_n = np.add(count_intensity.real, f32(1e-30), out=get('inv_n', (size, size), f32))
-        np.divide(f32(1.0), inv_n, out=inv_n)
-        np.multiply(count_intensity.imag, inv_n, out=raster[0])
-        # density = LUT[min(n, REF)], the LUT holding log1p(k) / log1p(REF); 'clip' is the min
-        count = get('count', (size, size), np.intp)
-        np.copyto(count, count_intensity.real, casting='unsafe')
-        np.take(_DENSITY_LUT, count, out=raster[1], mode='clip')
-        mean_sq = np.multiply(heights.real, inv_n, out=get('mean_sq', (size, size), f32))
-        mean_sq *= mean_sq
-        var = np.multiply(heights.imag, inv_n, out=raster[2])
-        var -= mean_sq
-        var *= f32(1.0 / HEIGHT_VAR_REF_M2)
-        np.clip(var, 0.0, 1.0, out=var)
         scale = 1.0 / (MIN_HEIGHT_HIGH_M - MIN_HEIGHT_LOW_M)
-        z_min = np.multiply(self.e_min.reshape(size + 2, -1)[inner], f32(scale), out=raster[3])
-        z_min += f32((z_ref - MIN_HEIGHT_LOW_M) * scale)
-        np.clip(z_min, 0.0, 1.0, out=z_min)  # empty: +inf -> 1
+        constants = (_DENSITY_LUT, f32(1.0 / HEIGHT_VAR_REF_M2), f32(scale),
+                     f32((z_ref - MIN_HEIGHT_LOW_M) * scale), raster)
+
+        def band(rows: tuple[int, int]) -> None:
+            encode_cells(self.sums, self.e_min, size + 2, *rows, *constants)
+        self._in_bands(band, _row_bands(size, len(self._bands)))
         return raster
+
+    def _in_bands(self, band: Callable[[tuple[int, int]], None],
+                  bands: list[tuple[int, int]]) -> None:
+        """band(rows) for every band: the first in this thread, the others in the pool."""
+        others = [_band_pool().submit(band, rows) for rows in bands[1:]]
+        band(bands[0])
+        for other in others:
+            other.result()
+
+
+@cache
+def _load_kernels() -> None:
+    """Compile the loops (or load them from numba's cache) once per process, with the argument
+    types of every later call, so that a node's first sweep does not wait for it."""
+    f32, side = np.float32, 3
+    sums, e_min, none = np.zeros((side * side, 4), f32), np.zeros(side * side, f32), f32([])
+    scatter_points(sums, e_min, side, 0, side, none.reshape(2, 0), np.zeros((2, 3), f32), none,
+                   none)
+    encode_cells(sums, e_min, side, 0, 1, _DENSITY_LUT, f32(1), f32(1), f32(0),
+                 np.zeros((4, 1, 1), f32))
+
+
+@cache
+def _band_pool() -> ThreadPoolExecutor:
+    """The threads that take the other bands, shared by every accumulator of the process."""
+    return ThreadPoolExecutor(MAX_RASTER_THREADS - 1, thread_name_prefix='raster')
+
+
+# a forked child has none of its parent's threads: it starts a pool of its own
+os.register_at_fork(after_in_child=_band_pool.cache_clear)
+
+
+def _row_bands(rows: int, threads: int) -> list[tuple[int, int]]:
+    """[lo, hi) row ranges that split rows into threads near-equal bands."""
+    edges = np.linspace(0, rows, threads + 1).round().astype(int)
+    return [(int(lo), int(hi)) for lo, hi in zip(edges[:-1], edges[1:])]
 
 
 def rasterize(xyz_window: np.ndarray, intensity01: np.ndarray,
@@ -226,9 +225,9 @@ def rasterize(xyz_window: np.ndarray, intensity01: np.ndarray,
     keep = np.isfinite(xyz).all(axis=1) & np.isfinite(inten)
     xyz, inten = xyz[keep], inten[keep]
     e = xyz[:, 2] - np.float32(HEIGHT_SHIFT_M)
-    acc = RasterAccumulator(spec)
+    acc = RasterAccumulator(spec, threads=1)
     acc.add(np.ascontiguousarray(xyz[:, :2].T), window_affine(1.0, 0.0, np.zeros(3), spec),
-            pack_count_intensity(inten), pack_heights(e), e)
+            inten, e)
     return acc.encode(HEIGHT_SHIFT_M)
 
 

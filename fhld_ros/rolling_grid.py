@@ -17,8 +17,6 @@ from fhld_ros.bev import (
     Z_REBASE_M,
     BevSpec,
     RasterAccumulator,
-    pack_count_intensity,
-    pack_heights,
     pixel_coords,
     window_affine,
     yaw_frame,
@@ -36,13 +34,11 @@ class _Sweep:
     xy: np.ndarray  # (2, N) float32 rows x - pose x, y - pose y
     e: np.ndarray  # (N,) float32 z - z_ref
     z_ref: float  # output-frame height that e is relative to (shared by the grid's sweeps)
-    count_intensity: np.ndarray  # (N,) complex64 1 + i*intensity01
-    heights: np.ndarray  # (N,) complex64 e + i*e^2
+    intensity01: np.ndarray  # (N,) float32 encoded intensity
 
     def with_z_ref(self, z_ref: float) -> _Sweep:
         e = self.e + np.float32(self.z_ref - z_ref)
-        return _Sweep(self.stamp_ns, self.pose, self.xy, e, z_ref, self.count_intensity,
-                      pack_heights(e))
+        return _Sweep(self.stamp_ns, self.pose, self.xy, e, z_ref, self.intensity01)
 
 
 @dataclass
@@ -73,7 +69,7 @@ class BevWindow:
             keep = ((pix >= 1) & (pix < size + 1)).all(axis=0)
             xy = self.spec.pixel_to_world(pix[:, keep].T - 1.0)
             xyz.append(np.column_stack([xy, sweep.e[keep] + self._e_to_z]).astype(np.float32))
-            inten.append(sweep.count_intensity.imag[keep])
+            inten.append(sweep.intensity01[keep])
         self._sources = ()  # computed once: let the sweeps go
         return np.concatenate(xyz), np.concatenate(inten)
 
@@ -163,7 +159,7 @@ class RollingBevGrid:
         e = out[2]
         e += np.float32(pose[2, 3] - z_ref)
         self._sweeps.append(_Sweep(stamp_ns, pose, out[:2], e, z_ref,
-                                   pack_count_intensity(intensity01), pack_heights(e)))
+                                   np.asarray(intensity01, dtype=np.float32)))
         self._evict()
         return reset
 
@@ -192,13 +188,13 @@ class RollingBevGrid:
         spec, newest = self.spec, self._sweeps[-1]
         window_to_output = yaw_frame(newest.pose)
         rot, origin = window_to_output[:3, :3], window_to_output[:3, 3]  # window axes in output
-        self._acc.clear()
         sources = []
         for sweep in self._sweeps:
             offset = (sweep.pose[:3, 3] - origin) @ rot  # the sweep's sensor origin, window frame
-            affine = window_affine(rot[0, 0], rot[1, 0], offset, spec)
-            self._acc.add(sweep.xy, affine, sweep.count_intensity, sweep.heights, sweep.e)
-            sources.append((sweep, affine))
+            sources.append((sweep, window_affine(rot[0, 0], rot[1, 0], offset, spec)))
+        self._acc.clear()
+        self._acc.add_all([(sweep.xy, affine, sweep.intensity01, sweep.e)
+                           for sweep, affine in sources])
         e_to_z = newest.z_ref - origin[2]
         half = spec.length_m / 2
         corners = np.array([[-half, -half, 0.0], [half, -half, 0.0], [half, half, 0.0],

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import multiprocessing
 
 import numpy as np
 import pytest
@@ -134,6 +135,59 @@ def test_rasterize_matches_reference_on_random_clouds():
         inten = rng.uniform(0, 1, n).astype(np.float32)
         np.testing.assert_allclose(rasterize(xyz, inten, spec),
                                    reference_raster(xyz, inten, spec), atol=2e-5)
+
+
+def test_every_band_sums_its_cells_points_in_the_order_they_came():
+    # float32 sums depend on the order of their terms: each thread's band of rows must add a
+    # cell's points in the order of the sweeps and points, as one pass (and numpy's add.at) does
+    spec = BevSpec(size_px=6, resolution_m=1.0)
+    rng = np.random.default_rng(3)
+    sweeps = []
+    for _ in range(3):
+        n = 2000
+        xy = rng.uniform(-3.5, 3.5, (2, n)).astype(np.float32)  # some outside: border cells
+        e = (rng.normal(0, 1, n) * 10.0 ** rng.integers(-4, 4, n)).astype(np.float32)
+        affine = bev.window_affine(math.cos(0.3), math.sin(0.3), rng.uniform(-1, 1, 3), spec)
+        sweeps.append((xy, affine, rng.uniform(0, 1, n).astype(np.float32), e))
+    side = spec.size_px + 2
+    sums, e_min = np.zeros((side * side, 4), np.float32), np.full(side * side, np.inf, np.float32)
+    for xy, affine, inten, e in sweeps:
+        pix = np.clip(affine[:, :2] @ xy + affine[:, 2:], 0, side - 1).astype(np.intp)
+        cells = pix[1] * side + pix[0]
+        for k, values in enumerate((np.ones_like(e), inten, e, e * e)):
+            np.add.at(sums[:, k], cells, values)
+        np.minimum.at(e_min, cells, e)
+    rasters = []
+    for threads in (1, 2, 3, bev.MAX_RASTER_THREADS):
+        acc = bev.RasterAccumulator(spec, threads=threads)
+        acc.add_all(sweeps)
+        np.testing.assert_array_equal(acc.sums, sums)
+        np.testing.assert_array_equal(acc.e_min, e_min)
+        rasters.append(acc.encode(-1.8))
+    for raster in rasters[1:]:
+        np.testing.assert_array_equal(raster, rasters[0])
+
+
+def test_raster_threads_are_bounded():
+    for threads in (0, bev.MAX_RASTER_THREADS + 1):
+        with pytest.raises(ValueError, match='threads must be 1'):
+            bev.RasterAccumulator(SPEC, threads=threads)
+
+
+def test_a_forked_child_rasters_with_threads_of_its_own():
+    # the band threads of the parent do not exist in a fork (training's data workers): the
+    # child must start its own instead of queueing its bands for threads that are gone
+    grid = RollingBevGrid(SPEC)
+    grid.insert(0, np.array([[1.0, 0.0, -1.8]]), np.array([0.5]), np.eye(4))
+    expected = grid.window().raster
+    ctx = multiprocessing.get_context('fork')
+    with ctx.Pool(1) as pool:
+        child = pool.apply_async(_window_raster, (grid,)).get(timeout=60)
+    np.testing.assert_array_equal(child, expected)
+
+
+def _window_raster(grid: RollingBevGrid) -> np.ndarray:
+    return grid.window().raster
 
 
 def test_points_outside_window_or_non_finite_are_ignored():
