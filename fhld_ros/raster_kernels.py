@@ -29,6 +29,17 @@ def _compiled(fn: Callable) -> Callable:
 
 
 @_compiled
+def _bordered_index(pixel: np.float32, side: int) -> int:  # pragma: no cover - compiled
+    """floor(pixel) clipped to [0, side - 1]: outside the window lands in the border cells,
+    and so does NaN (a bare int() of NaN would index far outside the arrays)."""
+    if pixel >= side - 1:
+        return side - 1
+    if pixel > 0:
+        return int(pixel)  # positive: trunc == floor
+    return 0
+
+
+@_compiled
 def scatter_points(sums: np.ndarray, e_min: np.ndarray, side: int, row_lo: int, row_hi: int,
                    xy: np.ndarray, affine: np.ndarray, intensity: np.ndarray,
                    e: np.ndarray) -> None:  # pragma: no cover - compiled
@@ -37,20 +48,18 @@ def scatter_points(sums: np.ndarray, e_min: np.ndarray, side: int, row_lo: int, 
     points outside the window are clipped into the border cells."""
     a00, a01, a02 = affine[0, 0], affine[0, 1], affine[0, 2]
     a10, a11, a12 = affine[1, 0], affine[1, 1], affine[1, 2]
-    zero, last = np.float32(0.0), np.float32(side - 1)
     for j in range(xy.shape[1]):
         x, y = xy[0, j], xy[1, j]
         row = x * a10
         row += y * a11
         row += a12
-        row = min(max(row, zero), last)
-        r = int(row)  # non-negative: trunc == floor
+        r = _bordered_index(row, side)
         if r < row_lo or r >= row_hi:
             continue
         col = x * a00
         col += y * a01
         col += a02
-        cell = r * side + int(min(max(col, zero), last))
+        cell = r * side + _bordered_index(col, side)
         ej = e[j]
         sums[cell, COUNT] += np.float32(1.0)
         sums[cell, INTENSITY] += intensity[j]

@@ -168,6 +168,20 @@ def test_every_band_sums_its_cells_points_in_the_order_they_came():
         np.testing.assert_array_equal(raster, rasters[0])
 
 
+def test_non_finite_pixels_land_in_the_border_not_outside_the_arrays():
+    # the grid drops non-finite points, but a finite coordinate near float32's limit still
+    # overflows in the pixel mapping: inf - inf is NaN, which must not index memory
+    spec = BevSpec(size_px=4, resolution_m=1.0)
+    big = np.float32(3e38)
+    xy = np.array([[np.nan, 1.0, np.inf, -np.inf, big, 0.5],
+                   [0.0, np.nan, -np.inf, np.inf, big, 0.5]], dtype=np.float32)
+    affine = bev.window_affine(math.cos(0.5), math.sin(0.5), np.zeros(3), spec)
+    acc = bev.RasterAccumulator(spec)
+    acc.add(xy, affine, np.full(6, 0.5, np.float32), np.zeros(6, np.float32))
+    counts = acc.sums[:, 0].reshape(6, 6)
+    assert counts.sum() == 6 and counts[1:-1, 1:-1].sum() == 1  # only the finite point inside
+
+
 def test_raster_threads_are_bounded():
     for threads in (0, bev.MAX_RASTER_THREADS + 1):
         with pytest.raises(ValueError, match='threads must be 1'):
