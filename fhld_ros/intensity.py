@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from fhld_ros.compiled import compiled
+
 ABSOLUTE, CONTRAST = 'absolute', 'contrast'
 INTENSITY_ENCODINGS = (ABSOLUTE, CONTRAST)
 INTENSITY_FULL_SCALES = (1.0, 255.0, 65535.0)  # 0-1 float, 8-bit / Velodyne, 16-bit sensors
@@ -62,18 +64,33 @@ def ground_mask(xyz_sensor: np.ndarray) -> np.ndarray:
     ground when it lies within GROUND_BAND_M of the lowest return of its GROUND_CELL_M square
     cell, GROUND_RANGE_M away horizontally and GROUND_BELOW_SENSOR_M below the sensor.
     """
-    x, y, z = (np.asarray(xyz_sensor, dtype=np.float32).reshape(-1, 3).T)
+    x, y, z = np.asarray(xyz_sensor, dtype=np.float32).reshape(-1, 3).T
+    f32 = np.float32
     lo, hi = GROUND_RANGE_M
-    r2 = x * x + y * y
-    near = (r2 >= lo * lo) & (r2 <= hi * hi) & (z < -GROUND_BELOW_SENSOR_M)
-    index = np.flatnonzero(near)
-    side = int(np.ceil(2 * hi / GROUND_CELL_M))
-    cell = (np.clip(((x[index] + hi) / GROUND_CELL_M).astype(np.intp), 0, side - 1) * side
-            + np.clip(((y[index] + hi) / GROUND_CELL_M).astype(np.intp), 0, side - 1))
+    return _ground_mask(x, y, z, f32(lo * lo), f32(hi * hi), f32(-GROUND_BELOW_SENSOR_M),
+                        f32(hi), f32(GROUND_CELL_M), int(np.ceil(2 * hi / GROUND_CELL_M)),
+                        f32(GROUND_BAND_M))
+
+
+@compiled
+def _ground_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray, lo2: np.float32,
+                 hi2: np.float32, below: np.float32, hi: np.float32, cell_m: np.float32,
+                 side: int, band: np.float32) -> np.ndarray:  # pragma: no cover - compiled
+    """ground_mask's two passes: the lowest return of each cell, then the returns near it."""
+    n = x.shape[0]
+    cell = np.full(n, -1, dtype=np.int64)  # -1: not in the ground range
     lowest = np.full(side * side, np.inf, dtype=np.float32)
-    np.minimum.at(lowest, cell, z[index])
-    mask = np.zeros(x.shape[0], dtype=bool)
-    mask[index] = z[index] - lowest[cell] < GROUND_BAND_M
+    for j in range(n):
+        r2 = x[j] * x[j] + y[j] * y[j]
+        if r2 >= lo2 and r2 <= hi2 and z[j] < below:
+            ix = min(max(int((x[j] + hi) / cell_m), 0), side - 1)
+            iy = min(max(int((y[j] + hi) / cell_m), 0), side - 1)
+            cell[j] = ix * side + iy
+            lowest[cell[j]] = min(lowest[cell[j]], z[j])
+    mask = np.zeros(n, dtype=np.bool_)
+    for j in range(n):
+        if cell[j] >= 0:
+            mask[j] = z[j] - lowest[cell[j]] < band
     return mask
 
 

@@ -9,26 +9,15 @@ the rasters are bit for bit those the shipped weights were trained on.
 """
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numpy as np
-from numba import njit
+
+from fhld_ros.compiled import compiled
 
 # sums columns of RasterAccumulator: count, intensity, e, e^2
 COUNT, INTENSITY, E, E2 = range(4)
 
 
-def _compiled(fn: Callable) -> Callable:
-    """fn compiled without the GIL, the machine code cached beside this file or in the user's
-    cache folder; where neither is writable (a read-only install, no home), compiled per
-    process instead of refusing to import."""
-    try:
-        return njit(nogil=True, cache=True, error_model='numpy')(fn)
-    except RuntimeError:  # numba: "cannot cache function ...: no locator available"
-        return njit(nogil=True, error_model='numpy')(fn)
-
-
-@_compiled
+@compiled
 def _bordered_index(pixel: np.float32, side: int) -> int:  # pragma: no cover - compiled
     """floor(pixel) clipped to [0, side - 1]: outside the window lands in the border cells,
     and so does NaN (a bare int() of NaN would index far outside the arrays)."""
@@ -39,7 +28,7 @@ def _bordered_index(pixel: np.float32, side: int) -> int:  # pragma: no cover - 
     return 0
 
 
-@_compiled
+@compiled
 def scatter_points(sums: np.ndarray, e_min: np.ndarray, side: int, row_lo: int, row_hi: int,
                    xy: np.ndarray, affine: np.ndarray, intensity: np.ndarray,
                    e: np.ndarray) -> None:  # pragma: no cover - compiled
@@ -69,7 +58,7 @@ def scatter_points(sums: np.ndarray, e_min: np.ndarray, side: int, row_lo: int, 
             e_min[cell] = ej
 
 
-@_compiled
+@compiled
 def encode_cells(sums: np.ndarray, e_min: np.ndarray, side: int, row_lo: int, row_hi: int,
                  density_lut: np.ndarray, var_scale: np.float32, z_scale: np.float32,
                  z_offset: np.float32, raster: np.ndarray) -> None:  # pragma: no cover
