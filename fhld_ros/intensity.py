@@ -75,7 +75,7 @@ def ground_mask(xyz_sensor: np.ndarray) -> np.ndarray:
 @compiled
 def _ground_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray, lo2: np.float32,
                  hi2: np.float32, below: np.float32, hi: np.float32, cell_m: np.float32,
-                 side: int, band: np.float32) -> np.ndarray:  # pragma: no cover - compiled
+                 side: int, band: np.float32) -> np.ndarray:
     """ground_mask's two passes: the lowest return of each cell, then the returns near it."""
     n = x.shape[0]
     cell = np.full(n, -1, dtype=np.int64)  # -1: not in the ground range

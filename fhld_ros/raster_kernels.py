@@ -18,7 +18,7 @@ COUNT, INTENSITY, E, E2 = range(4)
 
 
 @compiled
-def _bordered_index(pixel: np.float32, side: int) -> int:  # pragma: no cover - compiled
+def _bordered_index(pixel: np.float32, side: int) -> int:
     """floor(pixel) clipped to [0, side - 1]: outside the window lands in the border cells,
     and so does NaN (a bare int() of NaN would index far outside the arrays)."""
     if pixel >= side - 1:
@@ -31,7 +31,7 @@ def _bordered_index(pixel: np.float32, side: int) -> int:  # pragma: no cover - 
 @compiled
 def scatter_points(sums: np.ndarray, e_min: np.ndarray, side: int, row_lo: int, row_hi: int,
                    xy: np.ndarray, affine: np.ndarray, intensity: np.ndarray,
-                   e: np.ndarray) -> None:  # pragma: no cover - compiled
+                   e: np.ndarray) -> None:
     """Add the points whose bordered row is in [row_lo, row_hi) to sums (side*side, 4) and
     e_min (side*side,). xy (2, N) float32 maps to bordered pixels (col, row) by affine (2, 3);
     points outside the window are clipped into the border cells."""
@@ -61,7 +61,7 @@ def scatter_points(sums: np.ndarray, e_min: np.ndarray, side: int, row_lo: int, 
 @compiled
 def encode_cells(sums: np.ndarray, e_min: np.ndarray, side: int, row_lo: int, row_hi: int,
                  density_lut: np.ndarray, var_scale: np.float32, z_scale: np.float32,
-                 z_offset: np.float32, raster: np.ndarray) -> None:  # pragma: no cover
+                 z_offset: np.float32, raster: np.ndarray) -> None:
     """Channels of window rows [row_lo, row_hi) into raster (4, side - 2, side - 2); the
     formulas are bev.RasterAccumulator.encode's."""
     zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(1e-30)
