@@ -3,8 +3,9 @@
 Importing the node takes seconds (torch, ONNX Runtime, rclpy), and a SIGINT or SIGTERM can come
 during that, while rclpy is not yet listening: Ctrl-C would end in a KeyboardInterrupt traceback
 and SIGTERM in the default kill. This module imports nothing heavy, turns both signals into
-KeyboardInterrupt first, and only then imports the node, so every stop exits 0 without a
-traceback (node.main handles the moments after rclpy.init, whose handlers take over then).
+stops (ros/stop.py: held while the node is imported and built, KeyboardInterrupt after), and
+only then imports the node, so every stop exits 0 without a traceback (node.main handles the
+moments after rclpy.init, whose handlers take over then).
 """
 from __future__ import annotations
 
@@ -12,28 +13,24 @@ import os
 import signal
 import sys
 
-_stopping: list[int] = []  # the signals received
-
-
-def _interrupt(signum: int, frame: object) -> None:
-    _stopping.append(signum)
-    raise KeyboardInterrupt
+from fhld_ros.ros import stop
 
 
 def main(args: list[str] | None = None) -> int:
-    signal.signal(signal.SIGINT, _interrupt)
-    signal.signal(signal.SIGTERM, _interrupt)
+    signal.signal(signal.SIGINT, stop.interrupt)
+    signal.signal(signal.SIGTERM, stop.interrupt)
     try:
-        from fhld_ros.ros import node  # here, not at the top: see the module docstring
-        code = node.main(args)
+        with stop.held():
+            from fhld_ros.ros import node  # here, not at the top: see the module docstring
+        code = 0 if stop.received else node.main(args)
     except KeyboardInterrupt:
         code = 0
     except Exception:
-        # an interrupt inside an extension's import surfaces as ImportError: still the stop
-        if not _stopping:
+        # a stop that made something fail on its way out (rcl's init, say): still the stop
+        if not stop.received:
             raise
         code = 0
-    if _stopping:
+    if stop.received:
         # A KeyboardInterrupt that passed through Python run from C (pybind11's exec, inside
         # torch and rclpy) leaves CPython set to re-raise SIGINT on itself at exit, caught or
         # not (1 stop in 8 ended killed by SIGINT): leave now, the stop is complete.

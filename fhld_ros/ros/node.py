@@ -36,6 +36,7 @@ from fhld_ros.dataclass_dict import field_docs, from_dict, to_plain
 from fhld_ros.detectors import make_detector
 from fhld_ros.errors import ConfigError
 from fhld_ros.pipeline import LanePipeline
+from fhld_ros.ros import stop
 from fhld_ros.ros.diagnostics import NodeStats
 from fhld_ros.ros.executor import HandoffExecutor
 from fhld_ros.ros.parameters import DetectorParams, type_problem
@@ -341,7 +342,8 @@ def main(args: list[str] | None = None) -> int:
         print(f'lane_detector: error: bad ROS arguments: {reason}', file=sys.stderr)
         return 2
     try:
-        node = LaneDetectorNode()
+        with stop.held():  # signals are recorded while it is built: see ros/stop.py
+            node = LaneDetectorNode()
     except (KeyboardInterrupt, ExternalShutdownException):
         rclpy.try_shutdown()
         return 0
@@ -357,6 +359,10 @@ def main(args: list[str] | None = None) -> int:
         # on the shut-down context, an extension's import interrupted mid-way): that is the stop.
         if rclpy.ok():
             raise
+        return 0
+    if stop.received:  # a held stop: the node was built, but nothing is to run
+        node.destroy_node()
+        rclpy.try_shutdown()
         return 0
     # The executor's Python wait loop and the detection thread share the GIL; the model gives it
     # up in every torch op and, at the default 5 ms switch interval, waited that long to get it
