@@ -96,14 +96,16 @@ def window_affine(cos: float, sin: float, offset: np.ndarray, spec: BevSpec) -> 
                      [-sin * inv, cos * inv, offset[1] * inv + base]], dtype=np.float32)
 
 
-def pixel_coords(xy: np.ndarray, affine: np.ndarray, out: np.ndarray,
-                  tmp: np.ndarray) -> np.ndarray:
-    """affine @ [x; y; 1] for xy (2, N) float32, into out (2, N). Elementwise on purpose: the
-    threaded BLAS matmul stalled for milliseconds now and then on this busy 2-core machine."""
+def pixel_coords(xy: np.ndarray, affine: np.ndarray) -> np.ndarray:
+    """affine @ [x; y; 1] for xy (2, N) float32 -> (2, N) float32, with the float32 operations
+    of raster_kernels.scatter_points in their order, so a point maps to the cell it was
+    rasterised into. Elementwise, not a matmul: BLAS may fuse multiply-adds (other roundings),
+    and its threads stalled for milliseconds now and then on this busy 2-core machine."""
     x, y = xy
+    out = np.empty_like(xy)
     for k in range(2):
-        np.multiply(x, affine[k, 0], out=out[k])
-        out[k] += np.multiply(y, affine[k, 1], out=tmp)
+        out[k] = x * affine[k, 0]
+        out[k] += y * affine[k, 1]
         out[k] += affine[k, 2]
     return out
 
@@ -132,7 +134,8 @@ class RasterAccumulator:
         side = spec.size_px + 2
         self.sums = np.zeros((side * side, 4), dtype=np.float32)
         self.e_min = np.full(side * side, np.inf, dtype=np.float32)
-        self._bands = _row_bands(side, threads)
+        self._bands = _row_bands(side, threads)  # bordered rows, for the points
+        self._cell_bands = _row_bands(spec.size_px, threads)  # window rows, for the cells
         _load_kernels()
 
     def clear(self) -> None:
@@ -172,7 +175,7 @@ class RasterAccumulator:
 
         def band(rows: tuple[int, int]) -> None:
             encode_cells(self.sums, self.e_min, size + 2, *rows, *constants)
-        self._in_bands(band, _row_bands(size, len(self._bands)))
+        self._in_bands(band, self._cell_bands)
         return raster
 
     def _in_bands(self, band: Callable[[tuple[int, int]], None],

@@ -64,8 +64,7 @@ class BevWindow:
         size = self.spec.size_px
         xyz, inten = [np.zeros((0, 3), np.float32)], [np.zeros(0, np.float32)]
         for sweep, affine in self._sources:
-            pix = pixel_coords(sweep.xy, affine, np.empty_like(sweep.xy),
-                                np.empty_like(sweep.e))  # exactly as rasterised
+            pix = pixel_coords(sweep.xy, affine)  # exactly as rasterised
             keep = ((pix >= 1) & (pix < size + 1)).all(axis=0)
             xy = self.spec.pixel_to_world(pix[:, keep].T - 1.0)
             xyz.append(np.column_stack([xy, sweep.e[keep] + self._e_to_z]).astype(np.float32))

@@ -152,7 +152,7 @@ def test_every_band_sums_its_cells_points_in_the_order_they_came():
     side = spec.size_px + 2
     sums, e_min = np.zeros((side * side, 4), np.float32), np.full(side * side, np.inf, np.float32)
     for xy, affine, inten, e in sweeps:
-        pix = np.clip(affine[:, :2] @ xy + affine[:, 2:], 0, side - 1).astype(np.intp)
+        pix = np.clip(bev.pixel_coords(xy, affine), 0, side - 1).astype(np.intp)
         cells = pix[1] * side + pix[0]
         for k, values in enumerate((np.ones_like(e), inten, e, e * e)):
             np.add.at(sums[:, k], cells, values)
