@@ -155,8 +155,10 @@ def read_xyzi(msg: Any, *, max_points: int | None = DEFAULT_MAX_POINTS
                              f'{grid.dtype.fields[name][0].shape[0]}, expected 1')
     count = grid.size
     xyz = _xyz_view(grid)
-    if xyz is not None:  # x, y, z packed float32: one strided copy
-        xyz = np.array(xyz, dtype=np.float32).reshape(count, 3)
+    if xyz is not None:  # x, y, z packed float32: one strided copy of 12-byte records
+        # (a copy of the (h, w, 3) view runs an inner loop of 3 floats per point: 2.3x slower)
+        xyz = np.ascontiguousarray(xyz.view(np.dtype((np.void, 12)))).view(np.float32)
+        xyz = xyz.reshape(count, 3)
     else:
         xyz = np.empty((count, 3), dtype=np.float32)
         for k, axis in enumerate('xyz'):
