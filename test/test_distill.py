@@ -125,6 +125,25 @@ def test_a_backbone_student_learns_the_teachers_features(tmp_path):
         Teacher(str(path), FhldDetector(MODEL), part='heads')
 
 
+def test_a_stem_student_trains_only_its_stem_and_the_two_stages_after_it(tmp_path):
+    torch.manual_seed(0)
+    path = save_checkpoint(tmp_path / 'stem5.pt',
+                           FhldDetector(dataclasses.replace(MODEL, stem_kernel=5)).eval(), 'x')
+    student = FhldDetector(MODEL)  # a 3 x 3 stem
+    teacher = Teacher(str(path), student, part='stem')
+    trained = ('backbone.stem.', 'backbone.stages.0.', 'backbone.stages.1.')
+    for name, p in student.named_parameters():
+        assert p.requires_grad == name.startswith(trained), name
+    frozen = {k: v.clone() for k, v in student.state_dict().items() if not k.startswith(trained)}
+    assert any(k.startswith('backbone.stages.2.') for k in frozen)
+    first = learn_for_30_steps(teacher, student, frozen)
+    assert set(first) >= {'feature_4', 'feature_8', 'feature_16', 'feature_32'}
+    wider = FhldDetector(dataclasses.replace(MODEL, widths=(8, 16, 32, 80)))
+    with pytest.raises(ValueError, match=r'only in its backbone.stem, backbone.stages.0, '
+                                         r'backbone.stages.1 \(train.distill\)'):
+        Teacher(str(path), wider, part='stem')
+
+
 def test_a_features_student_learns_all_the_teacher_computes_before_the_local_head(tmp_path):
     torch.manual_seed(0)
     path = save_checkpoint(tmp_path / 'stem5.pt',

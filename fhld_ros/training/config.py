@@ -94,7 +94,7 @@ class TrainSection:
     # Only the weights: the model section must build the same layers; a resume ignores it
     init: str = ''
     # a checkpoint to distil (training/distill.py): the model section's `distill` part
-    # ('global_branch', 'backbone' or 'features') learns its outputs, every other layer is
+    # ('global_branch', 'backbone', 'stem' or 'features') learns its outputs, every other layer is
     # copied from it and frozen; '' = train on the labels
     teacher: str = ''
     distill: str = 'global_branch'

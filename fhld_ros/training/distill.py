@@ -17,6 +17,10 @@ other layer from the teacher by name and shape, frozen:
 - 'backbone': the student's backbone (e.g. a 3 x 3 stem) learns the teacher's feature maps at
   strides 4-32 (mean squared error relative to each map's mean square); both branches are the
   teacher's.
+- 'stem': as 'backbone', but only a stem of another size (e.g. 5 x 5) and the two stages
+  after it (strides 4 and 8) learn; the deeper stages and the backbone's attention stay the
+  teacher's too, so the maps the global curves are drawn from move only as far as the first
+  stages fail to make up for the stem.
 - 'features': everything the served features graph computes learns at once (e.g. a 3 x 3 stem
   and one encoder layer): the backbone's maps at strides 8-32, the local map that the local
   head reads, and the global branch's per-query outputs as for 'global_branch'. Only the local
@@ -41,6 +45,7 @@ from fhld_ros.model.detector import FhldDetector
 
 # the layers each part trains (state-dict prefixes); every other layer is the teacher's, frozen
 _TRAINED = {'global_branch': ('global_branch.',), 'backbone': ('backbone.',),
+            'stem': ('backbone.stem.', 'backbone.stages.0.', 'backbone.stages.1.'),
             'features': ('backbone.', 'local_features.', 'global_branch.')}
 PARTS = tuple(_TRAINED)
 # curve numbers are normalised window coordinates (0.01 = 26 cm) and heights in metres
@@ -99,7 +104,7 @@ class Teacher:
         if self.stem_to_fit:
             fit_stem(student.backbone.stem.conv, self.model.backbone.stem.conv, raster)
             self.stem_to_fit = False
-        if self.part == 'backbone':
+        if self.part in ('backbone', 'stem'):
             return self._feature_losses(student, raster)
         if self.part == 'features':
             return self._features_graph_losses(student, raster, lanes)
