@@ -157,7 +157,7 @@ def read_xyzi(msg: Any, *, max_points: int | None = DEFAULT_MAX_POINTS
     xyz = _xyz_view(grid)
     if xyz is not None:  # x, y, z packed float32: one strided copy of 12-byte records
         # (a copy of the (h, w, 3) view runs an inner loop of 3 floats per point: 2.3x slower)
-        xyz = np.ascontiguousarray(xyz.view(np.dtype((np.void, 12)))).view(np.float32)
+        xyz = np.array(xyz.view(np.dtype((np.void, 12)))).view(np.float32)  # always a copy
         xyz = xyz.reshape(count, 3)
     else:
         xyz = np.empty((count, 3), dtype=np.float32)

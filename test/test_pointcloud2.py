@@ -84,6 +84,22 @@ def test_big_endian_is_converted_without_touching_a_read_only_buffer():
     assert read_points(msg).dtype['x'].isnative
 
 
+@pytest.mark.parametrize('itemsize', [12, 16, 48])
+def test_xyz_is_a_writable_copy_whatever_the_point_step(itemsize):
+    # packed x, y, z are copied as 12-byte records; with point_step 12 they are the whole
+    # buffer, which must still be copied, not handed out (read-only, the message's own)
+    dtype = np.dtype({'names': ['x', 'y', 'z'], 'formats': ['<f4'] * 3, 'offsets': [0, 4, 8],
+                      'itemsize': itemsize})
+    points = np.zeros(5, dtype=dtype)
+    points['x'], points['y'], points['z'] = np.arange(1, 6), 2.0, -np.arange(5)
+    msg = _cloud(rosbags_family(), points)
+    msg.data = np.frombuffer(bytes(msg.data), dtype=np.uint8)  # read-only buffer
+    xyz, _ = read_xyzi(msg)
+    np.testing.assert_array_equal(xyz, np.stack([points['x'], points['y'], points['z']], 1))
+    xyz[:] = 0.0  # a copy: writable, and the message keeps its points
+    np.testing.assert_array_equal(read_xyzi(msg)[0][:, 0], points['x'])
+
+
 def test_nan_and_all_zero_points_are_dropped():
     points = _xyzi_points(6)
     points['x'][1] = np.nan
