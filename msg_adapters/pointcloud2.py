@@ -104,16 +104,18 @@ def _native(values: np.ndarray) -> np.ndarray:
     return values if values.dtype.isnative else values.astype(values.dtype.newbyteorder('='))
 
 
-def _xyz_view(grid: np.ndarray) -> np.ndarray | None:
-    """(height, width, 3) float32 view when x, y, z are consecutive native float32 fields."""
+def _xyz_records(grid: np.ndarray) -> np.ndarray | None:
+    """(height, width) view of 12-byte records when x, y, z are consecutive native float32
+    fields: copied record by record, 2.3x faster than a (height, width, 3) float view, whose
+    copy runs an inner loop of 3 floats per point."""
     fields = grid.dtype.fields
     x_type, x_off = fields['x'][:2]
     if x_type != np.dtype(np.float32) or grid.size == 0:
         return None
     if any(fields[a][0] != x_type or fields[a][1] != x_off + 4 * k for k, a in enumerate('xyz')):
         return None
-    return np.ndarray((*grid.shape, 3), dtype=np.float32, buffer=grid.base, offset=x_off,
-                      strides=(*grid.strides, 4))
+    return np.ndarray(grid.shape, dtype=np.dtype((np.void, 12)), buffer=grid.base, offset=x_off,
+                      strides=grid.strides)
 
 
 def read_points(msg: Any, *, max_points: int | None = DEFAULT_MAX_POINTS) -> np.ndarray:
@@ -154,11 +156,9 @@ def read_xyzi(msg: Any, *, max_points: int | None = DEFAULT_MAX_POINTS
             raise ValueError(f"PointCloud2 field '{name}' has count "
                              f'{grid.dtype.fields[name][0].shape[0]}, expected 1')
     count = grid.size
-    xyz = _xyz_view(grid)
-    if xyz is not None:  # x, y, z packed float32: one strided copy of 12-byte records
-        # (a copy of the (h, w, 3) view runs an inner loop of 3 floats per point: 2.3x slower)
-        xyz = np.array(xyz.view(np.dtype((np.void, 12)))).view(np.float32)  # always a copy
-        xyz = xyz.reshape(count, 3)
+    records = _xyz_records(grid)
+    if records is not None:  # x, y, z packed float32: one strided copy (always a copy)
+        xyz = np.array(records).view(np.float32).reshape(count, 3)
     else:
         xyz = np.empty((count, 3), dtype=np.float32)
         for k, axis in enumerate('xyz'):
