@@ -144,6 +144,28 @@ def test_a_stem_student_trains_only_its_stem_and_the_two_stages_after_it(tmp_pat
         Teacher(str(path), wider, part='stem')
 
 
+def test_a_stem_student_with_an_output_weight_also_learns_what_the_branches_make_of_it(
+        tmp_path):
+    torch.manual_seed(0)
+    path = save_checkpoint(tmp_path / 'stem5.pt',
+                           FhldDetector(dataclasses.replace(MODEL, stem_kernel=5)).eval(), 'x')
+    student = FhldDetector(MODEL)  # a 3 x 3 stem
+    teacher = Teacher(str(path), student, part='stem', output_weight=2.0)
+    trained = ('backbone.stem.', 'backbone.stages.0.', 'backbone.stages.1.')
+    frozen = {k: v.clone() for k, v in student.state_dict().items() if not k.startswith(trained)}
+    first = learn_for_30_steps(teacher, student, frozen)
+    assert set(first) >= {'feature_4', 'feature_32', 'feature_local', 'loss_cls', 'loss_curve'}
+    plain = Teacher(str(path), FhldDetector(MODEL), part='stem', copy_weights=False).losses(
+        student, rasters())
+    outputs = teacher.losses(student, rasters())
+    extra = 2.0 * (outputs['loss_cls'] + outputs['loss_curve'] + outputs['feature_local'])
+    assert outputs['loss'].item() == pytest.approx((plain['loss'] + extra).item(), rel=1e-5)
+    assert extra.item() > 0
+    twin = load_checkpoint(path).model
+    assert Teacher(str(path), twin, part='stem', output_weight=2.0).losses(
+        twin, rasters())['loss'] < 1e-5
+
+
 def test_a_features_student_learns_all_the_teacher_computes_before_the_local_head(tmp_path):
     torch.manual_seed(0)
     path = save_checkpoint(tmp_path / 'stem5.pt',
@@ -219,7 +241,8 @@ def test_init_and_teacher_together_are_one_clear_error(caches, teacher_path, tmp
 
 @pytest.mark.parametrize('name, value', [('distill_no_lane_weight', -1.0),
                                          ('distill_class_weight', float('nan')),
-                                         ('distill_curve_weight', True)])
+                                         ('distill_curve_weight', True),
+                                         ('distill_output_weight', -0.5)])
 def test_a_bad_distillation_weight_is_one_clear_error(caches, teacher_path, tmp_path, capsys,
                                                       name, value):
     cfg = tiny_config(tmp_path / 'bad.yaml', caches, teacher=str(teacher_path), **{name: value})

@@ -103,6 +103,9 @@ class TrainSection:
     distill_curve_weight: float = CURVE_WEIGHT
     # global_branch: > 0 = windows without labelled lanes teach "no lane" at this weight
     distill_no_lane_weight: float = 0.0
+    # backbone / stem: > 0 = the teacher's local map and per-query outputs, computed by the
+    # frozen branches from the student's maps, are also learnt, at this weight
+    distill_output_weight: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -169,7 +172,8 @@ def _check(t: TrainSection, d: DataSection) -> None:
     if t.init and t.teacher:
         raise ValueError('train.init and train.teacher exclude each other: a distillation '
                          'starts from its teacher')
-    for name in ('distill_class_weight', 'distill_curve_weight', 'distill_no_lane_weight'):
+    for name in ('distill_class_weight', 'distill_curve_weight', 'distill_no_lane_weight',
+                 'distill_output_weight'):
         _check_non_negative(f'train.{name}', getattr(t, name))
     if t.iterations < 1 or t.batch_size < 1 or t.eval_every < 1 or t.ckpt_every < 1:
         raise ValueError('train.iterations, batch_size, eval_every, ckpt_every must be >= 1')

@@ -21,6 +21,10 @@ other layer from the teacher by name and shape, frozen:
   after it (strides 4 and 8) learn; the deeper stages and the backbone's attention stay the
   teacher's too, so the maps the global curves are drawn from move only as far as the first
   stages fail to make up for the stem.
+  With `output_weight` > 0 ('backbone', 'stem') the student's maps are also held to what the
+  teacher's frozen branches make of them: the local map the local head places every lane point
+  on, and the per-query outputs (as for 'global_branch'). A map error of a few per cent spread
+  evenly costs little; the same error where the paint is moves lanes.
 - 'features': everything the served features graph computes learns at once (e.g. a 3 x 3 stem
   and one encoder layer): the backbone's maps at strides 8-32, the local map that the local
   head reads, and the global branch's per-query outputs as for 'global_branch'. Only the local
@@ -59,7 +63,8 @@ class Teacher:
 
     def __init__(self, path: str, student: FhldDetector, part: str = 'global_branch',
                  copy_weights: bool = True, class_weight: float = 1.0,
-                 curve_weight: float = CURVE_WEIGHT, no_lane_weight: float = 0.0) -> None:
+                 curve_weight: float = CURVE_WEIGHT, no_lane_weight: float = 0.0,
+                 output_weight: float = 0.0) -> None:
         if part not in PARTS:
             raise ValueError(f'train.distill must be one of {", ".join(PARTS)}, not {part!r}')
         loaded = load_checkpoint(path)
@@ -73,7 +78,7 @@ class Teacher:
             p.requires_grad_(False)
         self.model, self.part = teacher, part
         self.class_weight, self.curve_weight = class_weight, curve_weight
-        self.no_lane_weight = no_lane_weight
+        self.no_lane_weight, self.output_weight = no_lane_weight, output_weight
         if teacher.cfg.intensity_encoding != student.cfg.intensity_encoding:
             raise ValueError(f'train.teacher {path} reads intensity as '
                              f'{teacher.cfg.intensity_encoding!r}, the model section as '
@@ -105,7 +110,7 @@ class Teacher:
             fit_stem(student.backbone.stem.conv, self.model.backbone.stem.conv, raster)
             self.stem_to_fit = False
         if self.part in ('backbone', 'stem'):
-            return self._feature_losses(student, raster)
+            return self._feature_losses(student, raster, lanes)
         if self.part == 'features':
             return self._features_graph_losses(student, raster, lanes)
         with torch.no_grad():  # one backbone pass serves both: it is the same, and frozen
@@ -131,15 +136,26 @@ class Teacher:
                 'loss_curve': loss_curve,
                 'prob_err': (s_logits.softmax(-1)[..., 1] - p_lane[..., 1]).abs().max()}
 
-    def _feature_losses(self, student: FhldDetector, raster: Tensor) -> dict[str, Tensor]:
+    def _feature_losses(self, student: FhldDetector, raster: Tensor,
+                        lanes: list[list] | None) -> dict[str, Tensor]:
         with torch.no_grad():
             target = self.model.backbone(raster)
         feats = student.backbone(raster)
         per_stride = {s: relative_error(feats[s], t) for s, t in target.items()}
         loss = sum(per_stride.values(), torch.zeros((), device=raster.device))
-        zero = torch.zeros((), device=raster.device)  # the progress bar's class/curve columns
-        return {'loss': loss, 'loss_cls': zero, 'loss_curve': zero,
-                **{f'feature_{s}': value for s, value in per_stride.items()}}
+        errors = {f'feature_{s}': value for s, value in per_stride.items()}
+        if self.output_weight == 0:
+            zero = torch.zeros((), device=raster.device)  # the progress bar's class/curve columns
+            return {'loss': loss, 'loss_cls': zero, 'loss_curve': zero, **errors}
+        with torch.no_grad():
+            t_logits, t_curves = self.model.global_branch(target[32])
+            t_local = self.model.local_features(target)
+        # the branches are frozen: these terms reach only the student's part
+        s_logits, s_curves = student.global_branch(feats[32])
+        errors['feature_local'] = relative_error(student.local_features(feats), t_local)
+        outputs = self._query_losses(s_logits, s_curves, t_logits, t_curves, lanes)
+        outputs['loss'] = loss + self.output_weight * (outputs['loss'] + errors['feature_local'])
+        return {**outputs, **errors}
 
     def _features_graph_losses(self, student: FhldDetector, raster: Tensor,
                                lanes: list[list] | None) -> dict[str, Tensor]:

@@ -142,7 +142,8 @@ def start_run(cfg: TrainConfig, out_dir: Path, dist: Dist, resume: bool, command
     teacher = (Teacher(t.teacher, module, t.distill, copy_weights=not resuming,
                        class_weight=t.distill_class_weight,
                        curve_weight=t.distill_curve_weight,
-                       no_lane_weight=t.distill_no_lane_weight) if t.teacher else None)
+                       no_lane_weight=t.distill_no_lane_weight,
+                       output_weight=t.distill_output_weight) if t.teacher else None)
     if resuming:
         state = resume_run(out_dir / 'last.pt', module, opt, model_cfg, cfg.seed, dist)
         if dist.main:
