@@ -147,13 +147,8 @@ class Teacher:
         if self.output_weight == 0:
             zero = torch.zeros((), device=raster.device)  # the progress bar's class/curve columns
             return {'loss': loss, 'loss_cls': zero, 'loss_curve': zero, **errors}
-        with torch.no_grad():
-            t_logits, t_curves = self.model.global_branch(target[32])
-            t_local = self.model.local_features(target)
-        # the branches are frozen: these terms reach only the student's part
-        s_logits, s_curves = student.global_branch(feats[32])
-        errors['feature_local'] = relative_error(student.local_features(feats), t_local)
-        outputs = self._query_losses(s_logits, s_curves, t_logits, t_curves, lanes)
+        # the branches are frozen here: these terms reach only the student's part
+        outputs, errors['feature_local'] = self._branch_losses(student, feats, target, lanes)
         outputs['loss'] = loss + self.output_weight * (outputs['loss'] + errors['feature_local'])
         return {**outputs, **errors}
 
@@ -161,15 +156,24 @@ class Teacher:
                                lanes: list[list] | None) -> dict[str, Tensor]:
         with torch.no_grad():
             target = self.model.backbone(raster)
-            t_logits, t_curves = self.model.global_branch(target[32])
-            t_local = self.model.local_features(target)
         feats = student.backbone(raster)
-        s_logits, s_curves = student.global_branch(feats[32])
+        losses, local = self._branch_losses(student, feats, target, lanes)
         errors = {f'feature_{s}': relative_error(feats[s], target[s]) for s in (8, 16, 32)}
-        errors['feature_local'] = relative_error(student.local_features(feats), t_local)
-        losses = self._query_losses(s_logits, s_curves, t_logits, t_curves, lanes)
+        errors['feature_local'] = local
         losses['loss'] = losses['loss'] + sum(errors.values())
         return {**losses, **errors}
+
+    def _branch_losses(self, student: FhldDetector, feats: dict[int, Tensor],
+                       target: dict[int, Tensor], lanes: list[list] | None
+                       ) -> tuple[dict[str, Tensor], Tensor]:
+        """What the student's branches make of its maps against what the teacher's make of
+        its own: the per-query terms and the local map's relative error."""
+        with torch.no_grad():
+            t_logits, t_curves = self.model.global_branch(target[32])
+            t_local = self.model.local_features(target)
+        s_logits, s_curves = student.global_branch(feats[32])
+        local = relative_error(student.local_features(feats), t_local)
+        return self._query_losses(s_logits, s_curves, t_logits, t_curves, lanes), local
 
 
 def relative_error(value: Tensor, target: Tensor) -> Tensor:
