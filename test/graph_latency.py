@@ -28,19 +28,28 @@ from fhld_ros.ros.env import loopback_dds_env
 from msg_adapters.lanes import marker_array_to_lanes
 
 PUBLISHER = Path(__file__).resolve().parent / 'graph_publisher.py'
-DIAGNOSTICS = ('clouds', 'detections', 'bad_clouds', 'sweeps_skipped', 'stage_ingest_ms_p50',
-               'stage_wait_ms_p50', 'stage_raster_ms_p50', 'stage_detect_ms_p50')
+DIAGNOSTICS = ('clouds', 'detections', 'bad_clouds', 'input_reliability', 'sweeps_skipped',
+               'clouds_without_odometry', 'odometry_timeouts', 'clouds_lost_in_dds',
+               'odometry_lost_in_dds', 'stage_ingest_ms_p50', 'stage_wait_ms_p50',
+               'stage_raster_ms_p50', 'stage_detect_ms_p50')
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--sweeps', type=int, default=300)
     parser.add_argument('--odom-hz', type=int, default=10)
+    parser.add_argument('--dds', choices=('project', 'default'), default='project')
+    parser.add_argument('--params', nargs='*', default=[], help='node parameters, name:=value')
+    parser.add_argument('--log', help='the node\'s output to this file')
+    parser.add_argument('--publisher-args', default='',
+                        help="more test/graph_publisher.py arguments, e.g. '--best-effort'")
     args = parser.parse_args()
-    env = loopback_dds_env()
+    env = loopback_dds_env(dds=args.dds)
     os.environ.update(env)  # this process's listener joins the same loopback domain
-    node = subprocess.Popen([sys.executable, '-m', 'fhld_ros.ros.lane_detector'], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    ros_args = ['--ros-args', *[a for p in args.params for a in ('-p', p)]] if args.params else []
+    log = open(args.log, 'w') if args.log else subprocess.DEVNULL  # noqa: SIM115
+    node = subprocess.Popen([sys.executable, '-m', 'fhld_ros.ros.lane_detector', *ros_args],
+                            env=env, stdout=log, stderr=subprocess.STDOUT)
     context = rclpy.Context()
     rclpy.init(context=context)
     outputs = NodeOutputs(context, 'graph_latency')
@@ -53,7 +62,8 @@ def main() -> None:
         if not wait_until(lambda: outputs.diagnostics, 90):
             raise SystemExit('the node never came up')
         done = subprocess.run([sys.executable, str(PUBLISHER), '--odom-hz', str(args.odom_hz),
-                               '--sweeps', str(args.sweeps)], env=env, capture_output=True,
+                               '--sweeps', str(args.sweeps), *args.publisher_args.split()],
+                              env=env, capture_output=True,
                               text=True, check=True)
         stamps = json.loads(done.stdout.strip().splitlines()[-1])['stamps']
         time.sleep(2.0)

@@ -2,12 +2,14 @@
 
     python test/graph_publisher.py --odom-hz 10 --sweeps 40   # /odom then /points, same stamps
     python test/graph_publisher.py --odom-hz 50 --sweeps 40   # odometry on its own stamps
+    python test/graph_publisher.py --odom-hz 200 --best-effort --malformed 2   # a driver's QoS
 
 Clouds are Ouster-like 64 x 1024 organised sweeps of 48-byte points (x, y, z, intensity, t,
 reflectivity, ring, ambient, range; NaN no-returns), stamped on the sensor's own regular clock
 (the wall clock at start + k / 10 s) and published at that moment. Odometry drives straight
-ahead at 10 m/s. Prints one JSON line: the cloud stamps (ns) published. Imports nothing from
-fhld_ros.
+ahead at 10 m/s. With --malformed N, N clouds whose data is shorter than their header says go
+out midway between two sweeps. Prints one JSON line: the stamps (ns) of the good clouds
+published. Imports nothing from fhld_ros.
 """
 from __future__ import annotations
 
@@ -63,6 +65,12 @@ def cloud(stamp_ns: int, points: np.ndarray) -> PointCloud2:
     return msg
 
 
+def truncated(msg: PointCloud2) -> PointCloud2:
+    """The same cloud with a row missing from its data: malformed."""
+    msg.data = msg.data[:-msg.row_step]
+    return msg
+
+
 def odometry(stamp_ns: int, start_ns: int) -> Odometry:
     msg = Odometry(child_frame_id='os_lidar')
     msg.header.frame_id = 'odom'
@@ -85,13 +93,18 @@ def main() -> int:
                         'more: odometry on its own stamps, the clouds between them')
     parser.add_argument('--sweeps', type=int, default=40)
     parser.add_argument('--match-timeout', type=float, default=60.0)
+    parser.add_argument('--best-effort', action='store_true',
+                        help='best-effort publishers, as LiDAR drivers have')
+    parser.add_argument('--malformed', type=int, default=0, help='malformed clouds midway')
     args = parser.parse_args()
     rclpy.init()
     node = rclpy.create_node('graph_publisher')
-    reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-    points_pub = node.create_publisher(PointCloud2, 'points', reliable)
-    odom_pub = node.create_publisher(Odometry, 'odom', QoSProfile(
-        depth=50, reliability=ReliabilityPolicy.RELIABLE))
+    reliability = (ReliabilityPolicy.BEST_EFFORT if args.best_effort
+                   else ReliabilityPolicy.RELIABLE)
+    points_pub = node.create_publisher(PointCloud2, 'points',
+                                       QoSProfile(depth=10, reliability=reliability))
+    odom_pub = node.create_publisher(Odometry, 'odom',
+                                     QoSProfile(depth=50, reliability=reliability))
     deadline = time.monotonic() + args.match_timeout
     while (points_pub.get_subscription_count() < 1 or odom_pub.get_subscription_count() < 1):
         if time.monotonic() > deadline:
@@ -101,6 +114,8 @@ def main() -> int:
     points = ouster_points()
     start = time.time_ns() + 200_000_000
     stamps = []
+    # after which sweeps a malformed cloud follows, half a sweep later
+    malformed = {args.sweeps // 2 + 2 * i for i in range(args.malformed)}
     if args.odom_hz == 10:  # /odom then /points with identical stamps
         for k in range(args.sweeps):
             stamp = start + k * SWEEP_NS
@@ -108,6 +123,9 @@ def main() -> int:
             odom_pub.publish(odometry(stamp, start))
             points_pub.publish(cloud(stamp, points))
             stamps.append(stamp)
+            if k in malformed:
+                sleep_until(stamp + SWEEP_NS // 2)
+                points_pub.publish(truncated(cloud(stamp + SWEEP_NS // 2, points)))
     else:  # odometry every tick on its own stamps; a cloud half a tick after every n-th one
         tick = 1_000_000_000 // args.odom_hz
         per_sweep = SWEEP_NS // tick
@@ -119,6 +137,9 @@ def main() -> int:
                 sleep_until(stamp + tick // 2)
                 points_pub.publish(cloud(stamp + tick // 2, points))
                 stamps.append(stamp + tick // 2)
+            elif j % per_sweep == per_sweep // 2 + 1 and len(stamps) - 1 in malformed:
+                malformed.discard(len(stamps) - 1)
+                points_pub.publish(truncated(cloud(stamp, points)))
     time.sleep(1.0)  # reliable delivery of the last messages
     print(json.dumps({'stamps': stamps}), flush=True)
     node.destroy_node()

@@ -39,9 +39,11 @@ class Thresholds:
       target (150 ms); ERROR a second behind, when the lanes describe where the car was.
       Sweeps detected while odometry is stopped are left out: the first of them waited out
       odom_wait_sec on purpose, and the odometry WARN says so.
-    - drop rate: dropped / received clouds, where dropped = bad clouds (malformed, too large,
+    - drop rate: dropped / sent clouds, where dropped = bad clouds (malformed, too large,
       no frame_id) + sweeps overtaken (due for a detection by rate_hz, but a newer sweep was
-      detected instead because the detector was busy). Any drop is a WARN; over half an ERROR.
+      detected instead because the detector was busy) + clouds DDS lost on the way (it says
+      so for a best-effort subscription), and sent = received + lost. Any drop is a WARN; over
+      half an ERROR.
       Sweeps left out on purpose (a 20 Hz sensor at rate_hz 10) are not drops.
     - stale input: no cloud at all for this long (a 10 Hz sensor misses 20 sweeps in 2 s);
       before the first cloud the node WARNs that it waits for one.
@@ -71,6 +73,7 @@ class WindowSummary:
     clouds: int = 0  # received, good or bad
     bad_clouds: int = 0
     overtaken: int = 0
+    lost: int = 0  # clouds DDS lost before they reached the node
     bad_odometry: int = 0
     detections: int = 0
     detection_errors: int = 0
@@ -94,12 +97,14 @@ def assess(window: WindowSummary, odometry_stopped: bool = False,
     elif tripped := _tripped(window.since_cloud, th.stale_warn_sec, th.stale_error_sec):
         found.append((tripped[0], f'input stale: no clouds for {window.since_cloud:.1f} s '
                                   f'(> {tripped[1]:g} s)'))
-    dropped = window.bad_clouds + window.overtaken
-    rate = dropped / max(window.clouds, dropped, 1)
+    dropped = window.bad_clouds + window.overtaken + window.lost
+    sent = window.clouds + window.lost
+    rate = dropped / max(sent, dropped, 1)
     if tripped := _tripped(rate, th.drop_rate_warn, th.drop_rate_error):
         kinds = ', '.join(f'{n} {kind}' for n, kind in (
-            (window.bad_clouds, 'bad'), (window.overtaken, 'overtaken')) if n)
-        found.append((tripped[0], f'dropped {dropped} of {window.clouds} clouds in '
+            (window.bad_clouds, 'bad'), (window.overtaken, 'overtaken'),
+            (window.lost, 'lost by DDS')) if n)
+        found.append((tripped[0], f'dropped {dropped} of {sent} clouds in '
                                   f'{window.seconds:.2g} s ({kinds}; {rate:.0%} > '
                                   f'{tripped[1]:.0%})'))
     p95 = window.latency_p95_ms
@@ -157,6 +162,12 @@ class NodeStats:
         self.last_error = f'{what}: {exc}'
         self._event(what, now)
 
+    def lost_in_transport(self, what: str, count: int, now: float | None = None) -> None:
+        """`count` more `what` ('clouds', 'odometry') that DDS lost before delivery."""
+        self.counts[f'{what}_lost_in_dds'] += count
+        if what == 'clouds':
+            self._event('clouds_lost', now, count)
+
     def cloud_ingested(self, stamp_ns: int, arrived: float, done: float) -> None:
         self.stages_ms['ingest'].append((done - arrived) * 1e3)
         self.arrived_at[stamp_ns] = arrived
@@ -199,6 +210,7 @@ class NodeStats:
             clouds=len(self._recent('clouds_received', now)),
             bad_clouds=len(self._recent('bad_clouds', now)),
             overtaken=int(sum(self._recent('sweeps_overtaken', now))),
+            lost=int(sum(self._recent('clouds_lost', now))),
             bad_odometry=len(self._recent('bad_odometry', now)),
             detections=len(self._recent('detections', now)),
             detection_errors=len(self._recent('detection_errors', now)),
@@ -213,7 +225,7 @@ class NodeStats:
         values['cloud_rate_hz'] = f'{window.clouds / window.seconds:.2f}'
         values['detection_rate_hz'] = f'{window.detections / window.seconds:.2f}'
         values['window_sec'] = f'{window.seconds:.1f}'
-        values['window_clouds_dropped'] = str(window.bad_clouds + window.overtaken)
+        values['window_clouds_dropped'] = str(window.bad_clouds + window.overtaken + window.lost)
         if window.latency_p95_ms is not None:
             values['window_latency_ms_p95'] = f'{window.latency_p95_ms:.1f}'
         if window.since_cloud is not None:

@@ -24,6 +24,7 @@ from nav_msgs.msg import Odometry, Path
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.clock import Clock, ClockType
+from rclpy.event_handler import QoSMessageLostInfo, SubscriptionEventCallbacks
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation
@@ -39,6 +40,7 @@ from fhld_ros.pipeline import LanePipeline
 from fhld_ros.ros import stop
 from fhld_ros.ros.diagnostics import NodeStats
 from fhld_ros.ros.executor import HandoffExecutor
+from fhld_ros.ros.input_silence import InputSilence
 from fhld_ros.ros.parameters import DetectorParams, type_problem
 from msg_adapters.family import rclpy_family, stamp_to_ns
 from msg_adapters.lanes import lane_to_path_cdr, lanes_to_marker_array_cdr
@@ -107,10 +109,10 @@ class LaneDetectorNode(Node):
         self.detecting = threading.Lock()
         self.said_no_odometry = False
         self.said_odometry_stopped = False
-        # When the newest message came in (wall clock): sweeps waiting for odometry expire
-        # when nothing has come for odom_wait_sec (the pipeline's own bound needs newer
-        # messages). Not ROS time: with use_sim_time it stops with the bag, the poll with it.
-        self.last_input = time.monotonic()
+        # Sweeps waiting for odometry also go in when no message at all came for
+        # odom_wait_sec of wall time (the pipeline's own bound needs newer messages). Not ROS
+        # time: with use_sim_time it stops with the bag, the poll with it.
+        self.silence = InputSilence(self.params.odom_wait_sec)
         # rate_hz limits detections by sweep stamps, not by when the last detection ran: a
         # limit on the clock phase-locked detections behind arrivals (measured: +40 ms of
         # waiting per sweep).
@@ -137,8 +139,17 @@ class LaneDetectorNode(Node):
         self._subscribe_points(ReliabilityPolicy.BEST_EFFORT
                                if p.input_reliability == 'best_effort'
                                else ReliabilityPolicy.RELIABLE)
-        self.create_subscription(Odometry, p.odom_topic, self.on_odometry, 50,
-                                 callback_group=odometry)
+        # Best effort whatever the publisher: a reliable reader delivers in order, so one lost
+        # pose held back every later one until the writer's next heartbeat repaired it (measured
+        # with Fast DDS's default 512 kB shared-memory segment, which a 3 MB cloud overruns:
+        # poses 0.9-2.9 s late, p50 950 ms, while best effort got all of them in 2-4 ms). A
+        # pose that is lost is bridged by interpolation between its neighbours.
+        self.create_subscription(
+            Odometry, p.odom_topic, self.on_odometry,
+            QoSProfile(depth=50, reliability=ReliabilityPolicy.BEST_EFFORT),
+            callback_group=odometry,
+            event_callbacks=SubscriptionEventCallbacks(
+                message_lost=lambda info: self.on_lost('odometry', info)))
         out_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
         self.lanes_pub = self.create_publisher(MarkerArray, p.lanes_topic, out_qos)
         self.left_pub = self.create_publisher(Path, f'{p.lanes_topic}/ego_left', out_qos)
@@ -166,8 +177,10 @@ class LaneDetectorNode(Node):
         # subscription loses nothing from a bag player, a best-effort one takes drivers.
         qos = QoSProfile(history=qos_profile_sensor_data.history, depth=5,
                          durability=qos_profile_sensor_data.durability, reliability=reliability)
-        self.points_sub = self.create_subscription(PointCloud2, self.params.points_topic,
-                                                   self.on_cloud, qos, callback_group=self.inputs)
+        self.points_sub = self.create_subscription(
+            PointCloud2, self.params.points_topic, self.on_cloud, qos, callback_group=self.inputs,
+            event_callbacks=SubscriptionEventCallbacks(
+                message_lost=lambda info: self.on_lost('clouds', info)))
         self.points_reliability = reliability
         self.get_logger().info(f'subscribed to {self.params.points_topic} with '
                                f'{reliability.name} reliability')
@@ -189,6 +202,17 @@ class LaneDetectorNode(Node):
         self.get_logger().warning(f'dropped {what.replace("_", " ")}: {exc}',
                                   throttle_duration_sec=WARN_THROTTLE_SEC)
 
+    def on_lost(self, what: str, info: QoSMessageLostInfo) -> None:
+        """DDS says messages never reached this subscription (a best-effort writer's samples
+        lost on the way, or a reliable writer's dropped from its history before delivery)."""
+        self.stats.lost_in_transport(what, info.total_count_change)
+        if what == 'clouds':
+            self.get_logger().warning(
+                f'DDS lost {info.total_count} clouds on {self.params.points_topic} before they '
+                'reached the node (large clouds over a best-effort transport: raise the '
+                'shared-memory segment size, see the README on DDS)',
+                throttle_duration_sec=WARN_THROTTLE_SEC)
+
     def _report_odometry(self) -> None:
         """Warn (throttled) while sweeps go in without odometry; say when it is back."""
         stopped = self.pipeline.odometry_stopped and self.pipeline.uses_odometry
@@ -204,7 +228,7 @@ class LaneDetectorNode(Node):
                                    f'in {self.pipeline.odom_frame} again')
 
     def on_odometry(self, msg: Odometry) -> None:
-        self.last_input = time.monotonic()
+        self.silence.heard()
         try:
             with self.lock:
                 newest = self.pipeline.grid.newest_stamp_ns
@@ -222,7 +246,7 @@ class LaneDetectorNode(Node):
 
     def on_cloud(self, msg: PointCloud2) -> None:
         arrived = time.monotonic()
-        self.last_input = time.monotonic()
+        self.silence.heard(arrived)
         self.stats.cloud_received(arrived)
         try:
             with self.lock:
@@ -254,9 +278,7 @@ class LaneDetectorNode(Node):
     def expire_waiting(self) -> bool:
         """Sweeps still waiting for odometry after odom_wait_sec without any message go in
         now (per sweep where nothing covers them); True when any did."""
-        if not self.pipeline.pending:
-            return False
-        if time.monotonic() - self.last_input <= self.params.odom_wait_sec:
+        if not self.pipeline.pending or not self.silence.expired():
             return False
         with self.lock:
             inserted = self.pipeline.expire_waiting()
