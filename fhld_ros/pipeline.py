@@ -32,13 +32,24 @@ from fhld_ros.intensity import ABSOLUTE
 from fhld_ros.rolling_grid import BevWindow, RollingBevGrid
 from fhld_ros.ros.parameters import DetectorParams
 from msg_adapters.family import stamp_to_ns
-from msg_adapters.odometry import euler_to_matrix, interpolate_pose, odometry_to_matrix
+from msg_adapters.odometry import (
+    euler_to_matrix,
+    extrapolate_pose,
+    interpolate_pose,
+    odometry_to_matrix,
+)
 from msg_adapters.pointcloud2 import read_xyzi
 
 ODOM_HISTORY = 4000  # poses kept at most (20 s at 200 Hz) ...
 ODOM_HISTORY_NS = 5_000_000_000  # ... and no older than this behind the newest
-# Poses further apart than this are not interpolated between: odometry stopped in between
-ODOM_MAX_GAP_NS = 500_000_000
+# Poses further apart than this are not interpolated between: odometry stopped in between.
+# As long as the longest wait for odometry (odom_wait_sec's default): a burst of poses lost in
+# DDS (measured: up to 5 in a row of 10 Hz poses) leaves gaps over 0.5 s, and a sweep in one
+# going in alone would reset the grid.
+ODOM_MAX_GAP_NS = 1_000_000_000
+# Extrapolation continues the motion between the newest pose and one at least this much older
+# (two poses 5 ms apart at 200 Hz would scale their jitter 20-fold over 100 ms)
+EXTRAPOLATION_BASE_NS = 50_000_000
 TIME_BACK_NS = 1_000_000_000  # a stamp this far behind the newest: time went back (bag loop)
 MAX_PENDING = 32  # waiting sweeps at most, whatever the stamps say (memory bound)
 
@@ -96,6 +107,18 @@ class PoseBuffer:
         """Pose at stamp_ns, or None when no two poses at most ODOM_MAX_GAP_NS apart (or one
         at exactly stamp_ns) surround it: no extrapolation, no hold."""
         return pose_at(self.stamps, self.poses, stamp_ns, ODOM_MAX_GAP_NS)
+
+    def extrapolated(self, stamp_ns: int, max_ahead_ns: int) -> np.ndarray | None:
+        """Pose at a stamp past the newest one, by at most max_ahead_ns: the motion from a pose
+        EXTRAPOLATION_BASE_NS or more before the newest (at most ODOM_MAX_GAP_NS) continued.
+        None when the stamp is not in that reach or no such older pose is kept."""
+        if not self.stamps or not 0 < stamp_ns - self.stamps[-1] <= max_ahead_ns:
+            return None
+        base = bisect.bisect_right(self.stamps, self.stamps[-1] - EXTRAPOLATION_BASE_NS) - 1
+        if base < 0 or self.stamps[-1] - self.stamps[base] > ODOM_MAX_GAP_NS:
+            return None
+        return extrapolate_pose(stamp_ns, self.stamps[base], self.poses[base], self.stamps[-1],
+                                self.poses[-1])
 
 
 def pose_at(stamps: Sequence[int], poses: Sequence[np.ndarray], stamp_ns: int,
@@ -198,16 +221,17 @@ class LanePipeline:
         self.odometry_stopped = False
         self.pending: collections.deque[tuple] = collections.deque()  # in stamp order
         self.counters = {'clouds': 0, 'odometry': 0, 'detections': 0, 'sweeps_skipped': 0,
-                         'resets': 0, 'clouds_without_odometry': 0, 'odometry_timeouts': 0}
+                         'resets': 0, 'clouds_without_odometry': 0, 'odometry_timeouts': 0,
+                         'clouds_extrapolated': 0}
 
     @property
     def uses_odometry(self) -> bool:
         return self.odom_frame is not None
 
-    def add_odometry(self, msg: Any) -> None:
-        """Buffer one odometry message and let in the sweeps it covers. Raises ValueError
-        (naming the problem), changing nothing, for an empty frame_id (it would be the output
-        frame) or a non-finite or non-unit pose."""
+    def add_odometry(self, msg: Any) -> list[int]:
+        """Buffer one odometry message and let in the sweeps it covers; returns their stamps.
+        Raises ValueError (naming the problem), changing nothing, for an empty frame_id (it
+        would be the output frame) or a non-finite or non-unit pose."""
         frame = str(msg.header.frame_id)
         if not frame:
             raise ValueError('odometry has an empty frame_id')
@@ -218,11 +242,15 @@ class LanePipeline:
         self.odometry.add(stamp_ns, pose)
         self.counters['odometry'] += 1
         self.odometry_stopped = False  # it is back: sweeps wait for their odometry again
-        self._release()
+        return self._release()
 
-    def sensor_pose(self, stamp_ns: int, cloud_frame: str) -> np.ndarray | None:
-        """Cloud frame -> odometry frame at the stamp; None when no odometry covers it."""
+    def sensor_pose(self, stamp_ns: int, cloud_frame: str,
+                    extrapolate_ns: int = 0) -> np.ndarray | None:
+        """Cloud frame -> odometry frame at the stamp; None when no odometry covers it (nor,
+        with extrapolate_ns, reaches it by extrapolation: PoseBuffer.extrapolated)."""
         pose = self.odometry.at(stamp_ns)
+        if pose is None and extrapolate_ns:
+            pose = self.odometry.extrapolated(stamp_ns, extrapolate_ns)
         if pose is None:
             return None
         return pose if cloud_frame == self.odom_child else pose @ self.lidar_to_base
@@ -254,11 +282,32 @@ class LanePipeline:
     def expire_waiting(self) -> int:
         """Let every waiting sweep in now: with odometry where it covers, else per sweep (the
         live node's clock check when messages stop coming). Returns how many went in."""
-        return self._release(force=len(self.pending))
+        return len(self._release(force=len(self.pending)))
+
+    def extrapolate_waiting(self, until_stamp_ns: int) -> list[int]:
+        """Let the waiting sweeps up to until_stamp_ns in (oldest first) with poses
+        extrapolated from the newest odometry, as far as params.odom_extrapolate_sec reaches
+        past it (the live node's way past odometry that DDS lost). Returns their stamps."""
+        reach_ns = round(self.params.odom_extrapolate_sec * 1e9)
+        let_in: list[int] = []
+        while reach_ns and self.pending and self.pending[0][0] <= until_stamp_ns:
+            stamp_ns, frame, xyz, intensity = self.pending[0]
+            pose = self.sensor_pose(stamp_ns, frame, reach_ns)
+            if pose is None:
+                break
+            self.pending.popleft()
+            self._insert(stamp_ns, frame, xyz, intensity, pose)
+            self.counters['clouds_extrapolated'] += 1
+            let_in.append(stamp_ns)
+        return let_in
+
+    def is_waiting(self, stamp_ns: int) -> bool:
+        """Whether the sweep of this stamp waits for its odometry."""
+        return any(waiting[0] == stamp_ns for waiting in self.pending)
 
     def insert_waiting(self) -> bool:
         """Let the oldest waiting sweep in now (at the end of a bag); False when none waits."""
-        return self._release(force=1) > 0
+        return bool(self._release(force=1))
 
     def _saw(self, stamp_ns: int) -> None:
         if self.newest_seen_ns is None or stamp_ns > self.newest_seen_ns:
@@ -273,10 +322,10 @@ class LanePipeline:
             return _WAIT
         return self.sensor_pose(stamp_ns, frame)
 
-    def _release(self, force: int = 0) -> int:
+    def _release(self, force: int = 0) -> list[int]:
         """Insert waiting sweeps from the oldest on, while each has its pose, never will, or
-        has waited long enough (or is one of the `force` oldest). Returns how many went in."""
-        inserted = 0
+        has waited long enough (or is one of the `force` oldest). Returns their stamps."""
+        inserted: list[int] = []
         while self.pending:
             stamp_ns, frame, xyz, intensity = self.pending[0]
             pose = self._pose_for(stamp_ns, frame)
@@ -287,7 +336,7 @@ class LanePipeline:
                     else self.wait_ns
                 overdue = (self.newest_seen_ns - stamp_ns > wait_ns
                            or len(self.pending) > MAX_PENDING)
-                if not (inserted < force or overdue):
+                if not (len(inserted) < force or overdue):
                     break
                 if not self.odometry_stopped and self.uses_odometry:
                     self.counters['odometry_timeouts'] += 1
@@ -295,7 +344,7 @@ class LanePipeline:
                 pose = None
             self.pending.popleft()
             self._insert(stamp_ns, frame, xyz, intensity, pose)
-            inserted += 1
+            inserted.append(stamp_ns)
         return inserted
 
     def _insert(self, stamp_ns: int, frame: str, xyz: np.ndarray, intensity: np.ndarray,

@@ -151,3 +151,30 @@ def interpolate_pose(t: float, t0: float, pose0: np.ndarray, t1: float,
     transform[:3, :3] = quaternion_to_matrix(q)
     transform[:3, 3] = (1 - fraction) * pose0[:3, 3] + fraction * pose1[:3, 3]
     return transform
+
+
+def _left_jacobian(rotvec: np.ndarray) -> np.ndarray:
+    """SO(3)'s left Jacobian V: exp of a twist (rotvec, u) moves by V u."""
+    theta = float(np.linalg.norm(rotvec))
+    k = np.array([[0, -rotvec[2], rotvec[1]], [rotvec[2], 0, -rotvec[0]],
+                  [-rotvec[1], rotvec[0], 0]])
+    if theta < 1e-9:
+        return np.eye(3) + 0.5 * k
+    return (np.eye(3) + (1 - np.cos(theta)) / theta ** 2 * k
+            + (theta - np.sin(theta)) / theta ** 3 * k @ k)
+
+
+def extrapolate_pose(t: float, t0: float, pose0: np.ndarray, t1: float,
+                     pose1: np.ndarray) -> np.ndarray:
+    """Pose at time t >= t1, continuing the motion from pose0 (t0) to pose1 (t1 > t0) at the
+    same body-frame twist: exact for constant speed and turn rate (a screw motion)."""
+    from scipy.spatial.transform import Rotation
+
+    step = np.linalg.solve(pose0, pose1)  # pose0^-1 pose1: the motion in pose0's frame
+    rotvec = Rotation.from_matrix(step[:3, :3]).as_rotvec()
+    u = np.linalg.solve(_left_jacobian(rotvec), step[:3, 3])
+    k = (t - t1) / (t1 - t0)
+    ahead = np.eye(4)
+    ahead[:3, :3] = Rotation.from_rotvec(rotvec * k).as_matrix()
+    ahead[:3, 3] = _left_jacobian(rotvec * k) @ (u * k)
+    return pose1 @ ahead

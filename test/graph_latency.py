@@ -30,7 +30,8 @@ from msg_adapters.lanes import marker_array_to_lanes
 PUBLISHER = Path(__file__).resolve().parent / 'graph_publisher.py'
 DIAGNOSTICS = ('clouds', 'detections', 'bad_clouds', 'input_reliability', 'sweeps_skipped',
                'clouds_without_odometry', 'odometry_timeouts', 'clouds_lost_in_dds',
-               'odometry_lost_in_dds', 'stage_ingest_ms_p50', 'stage_wait_ms_p50',
+               'odometry_lost_in_dds', 'odometry', 'clouds_extrapolated',
+               'stage_ingest_ms_p50', 'stage_wait_ms_p50',
                'stage_raster_ms_p50', 'stage_detect_ms_p50')
 
 

@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 from msg_adapters.family import rclpy_family, rosbags_family
 from msg_adapters.odometry import (
     euler_to_matrix,
+    extrapolate_pose,
     interpolate_pose,
     make_odometry,
     matrix_to_quaternion,
@@ -95,3 +96,14 @@ def test_quaternions_within_rounding_of_unit_norm_are_accepted():
     matrix = odometry_to_matrix(_odometry_with(rosbags_family(), q, (1, 2, 3)))
     np.testing.assert_allclose(matrix[:3, :3].T @ matrix[:3, :3], np.eye(3), atol=1e-12)
     np.testing.assert_allclose(matrix[:3, 3], [1, 2, 3])
+
+
+def test_extrapolation_continues_a_constant_turn_exactly():
+    # a car on a circle of radius 50 m at 10 m/s: poses at 0 and 0.1 s, predicted at 0.3 s
+    def on_circle(t):
+        yaw = 10.0 * t / 50.0
+        return euler_to_matrix(50 * np.sin(yaw), 50 * (1 - np.cos(yaw)), 0, 0, 0, yaw)
+    predicted = extrapolate_pose(0.3, 0.0, on_circle(0.0), 0.1, on_circle(0.1))
+    np.testing.assert_allclose(predicted, on_circle(0.3), atol=1e-9)
+    straight = extrapolate_pose(0.3, 0.0, np.eye(4), 0.1, euler_to_matrix(1, 0, 0, 0, 0, 0))
+    np.testing.assert_allclose(straight, euler_to_matrix(3, 0, 0, 0, 0, 0), atol=1e-12)

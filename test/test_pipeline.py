@@ -49,11 +49,11 @@ def test_pose_buffer_interpolates_inside_and_refuses_outside_and_across_gaps():
     np.testing.assert_allclose(buffer.at(1_100_000_000)[:3, 3], [1, 0, 0])
     np.testing.assert_allclose(buffer.at(1_400_000_000)[:3, 3], [4, 0, 0])
     assert buffer.at(1_400_000_001) is None and buffer.at(999_999_999) is None  # no hold
-    buffer.add(2_400_000_000, euler_to_matrix(9, 0, 0, 0, 0, 0))
-    assert buffer.at(1_900_000_000) is None  # 1 s between poses: odometry stopped there
+    buffer.add(2_500_000_000, euler_to_matrix(9, 0, 0, 0, 0, 0))
+    assert buffer.at(1_900_000_000) is None  # 1.1 s between poses: odometry stopped there
     # old poses leave by age, and all of them when time goes back
     buffer.add(7_000_000_000, np.eye(4))
-    assert buffer.stamps == [2_400_000_000, 7_000_000_000]
+    assert buffer.stamps == [2_500_000_000, 7_000_000_000]
     buffer.add(100, np.eye(4))
     assert buffer.stamps == [100]
 
@@ -207,3 +207,48 @@ def test_max_points_bounds_the_clouds_the_pipeline_decodes():
         pipeline.add_cloud(_cloud(100_000_000, n=201))
     pipeline.add_cloud(_cloud(200_000_000, n=200))
     assert pipeline.counters['clouds'] == 1
+
+
+def test_pose_buffer_extrapolates_the_newest_motion_a_bounded_way_ahead():
+    buffer = PoseBuffer()
+    assert buffer.extrapolated(100, 200_000_000) is None  # no poses
+    for k in range(6):  # 10 m/s and 0.1 rad/s, poses every 20 ms
+        t = k * 0.02
+        buffer.add(k * 20_000_000, euler_to_matrix(10 * t, 0, 0, 0, 0, 0.1 * t))
+    ahead = buffer.extrapolated(200_000_000, 200_000_000)
+    # the motion of the newest pose and the one >= 50 ms before it (not of the last 20 ms)
+    np.testing.assert_allclose(ahead[:3, 3], [2.0, 0.0, 0.0], atol=0.01)
+    np.testing.assert_allclose(np.arctan2(ahead[1, 0], ahead[0, 0]), 0.02, atol=1e-9)
+    assert buffer.extrapolated(300_000_001, 200_000_000) is None  # past the reach
+    assert buffer.extrapolated(100_000_000, 200_000_000) is None  # covered: not extrapolated
+    lone = PoseBuffer()
+    lone.add(0, np.eye(4))
+    assert lone.extrapolated(50_000_000, 200_000_000) is None  # one pose: no motion known
+
+
+def test_late_sweeps_go_in_extrapolated_up_to_the_reach_and_in_stamp_order():
+    detector = FixedLanes([], [])
+    params = DetectorParams(size_px=64, resolution_m=0.5, odom_extrapolate_sec=0.2)
+    pipeline = LanePipeline(params, detector)
+    for k in range(3):  # 20 m/s straight ahead, poses at 0, 0.1, 0.2 s
+        pipeline.add_odometry(_odom(k * 100_000_000, euler_to_matrix(2.0 * k, 0, 0, 0, 0, 0)))
+    for k in (3, 4, 5):  # their poses lost on the way
+        pipeline.add_cloud(_cloud(k * 100_000_000))
+    assert [s[0] for s in pipeline.pending] == [300_000_000, 400_000_000, 500_000_000]
+    # the node's thread lets in those that waited too long: as far as the reach goes
+    assert pipeline.extrapolate_waiting(500_000_000) == [300_000_000, 400_000_000]
+    assert [s[0] for s in pipeline.pending] == [500_000_000]
+    assert pipeline.counters['clouds_extrapolated'] == 2
+    assert pipeline.counters['clouds_without_odometry'] == 0
+    pipeline.detect()
+    np.testing.assert_allclose(detector.windows[-1].window_to_output[:3, 3], [8, 0, 0])
+    assert pipeline.output_frame == 'odom'
+    # the next pose that comes covers the one left; the grid went on in the odometry frame
+    pipeline.add_odometry(_odom(600_000_000, euler_to_matrix(12.0, 0, 0, 0, 0, 0)))
+    assert not pipeline.pending and len(pipeline.grid) == 3
+    off = LanePipeline(DetectorParams(size_px=64, resolution_m=0.5, odom_extrapolate_sec=0.0),
+                       FixedLanes([], []))
+    off.add_odometry(_odom(0, np.eye(4)))
+    off.add_odometry(_odom(100_000_000, np.eye(4)))
+    off.add_cloud(_cloud(200_000_000))
+    assert off.extrapolate_waiting(200_000_000) == [] and off.is_waiting(200_000_000)

@@ -3,7 +3,8 @@
 Each section is a function ``() -> dict[str, float]`` in bench_stages.py (bench_e2e.py for the
 node end to end), registered in SECTIONS as 'module:function' and imported only when it runs.
 ``fhld bench --json`` merges all sections into one flat JSON object; ``fhld bench adapters``
-runs one.
+runs one. Only e2e takes an argument: ``--dds`` picks the DDS transports it measures the node
+over (default both, its keys named e2e_project_* and e2e_default_*).
 """
 from __future__ import annotations
 
@@ -25,12 +26,20 @@ SECTIONS: dict[str, str] = {
     'simulator': f'{STAGES}:bench_simulator',
     'e2e': 'fhld_ros.commands.bench_e2e:bench_e2e',
 }
+# --dds -> the transports of fhld_ros.ros.env.PROFILES that the e2e section runs, in order
+DDS_CHOICES: dict[str, tuple[str, ...]] = {
+    'project': ('project',), 'default': ('default',), 'both': ('project', 'default')}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('sections', nargs='*', metavar='SECTION',
                         help=f'sections to run (default: all): {", ".join(SECTIONS)}')
     parser.add_argument('--json', action='store_true', help='print one JSON object last')
+    parser.add_argument('--dds', choices=list(DDS_CHOICES), default='both',
+                        help="e2e's DDS transport (default: both, one after the other): "
+                        "'project' is config/fastdds_loopback.xml (32 MB shared-memory "
+                        "segments), 'default' is Fast DDS's default 512 kB shared-memory "
+                        'segment, where a 3 MB cloud travels in fragments')
 
 
 def run(args: argparse.Namespace) -> int:
@@ -42,12 +51,14 @@ def run(args: argparse.Namespace) -> int:
     results: dict[str, object] = {'machine': machine, 'cpu_threads': os.cpu_count()}
     for name in args.sections or list(SECTIONS):
         module_name, func_name = SECTIONS[name].split(':')
-        section = getattr(importlib.import_module(module_name), func_name)()
+        kwargs = {'dds': DDS_CHOICES[args.dds]} if name == 'e2e' else {}
+        section = getattr(importlib.import_module(module_name), func_name)(**kwargs)
         if not args.json:
             print(f'[{name}]')
+            width = max([28, *map(len, section)])
             for key, value in section.items():
-                print(f'  {key:<28} {value:.3f}' if isinstance(value, float) else
-                      f'  {key:<28} {value}')
+                print(f'  {key:<{width}} {value:.3f}' if isinstance(value, float) else
+                      f'  {key:<{width}} {value}')
         results.update(section)
     if args.json:
         print(json.dumps(results))

@@ -1,17 +1,27 @@
 """`fhld bench e2e`: sweep-to-/lanes latency of the running node over real DDS (loopback).
 
-The node runs as its own process with its default parameters (the shipped FHLD weights); this
-process publishes simulated 64x1024 Ouster-like sweeps and their odometry at 10 Hz on the wall
-clock and timestamps every /lanes message on arrival. Latency = /lanes arrival - publish time
-of the newest sweep it was computed from (the message's stamp). A sweep that never becomes the
-newest sweep of a /lanes message counts as dropped. Backlog growth compares the median latency
-of the last third of the run with the first third, and so does the node's resident memory
-(sampled once a second). The node's stage medians (node_stage_*_ms_p50, from its /diagnostics)
-say where the time goes.
+The node runs as its own process with its default parameters (the shipped FHLD weights); a
+bench process publishes simulated 64x1024 Ouster-like sweeps and their odometry at 10 Hz on the
+wall clock and timestamps every /lanes message on arrival. Latency = /lanes arrival - publish
+time of the newest sweep it was computed from (the message's stamp). A sweep that never becomes
+the newest sweep of a /lanes message counts as dropped. Backlog growth compares the median
+latency of the last third of the run with the first third, and so does the node's resident
+memory (sampled once a second). The node's stage medians (node_stage_*_ms_p50, from its
+/diagnostics) say where the time goes, its counters (node_clouds_lost_in_dds, ...) what it lost.
+
+Fast DDS reads its XML profile once per process, so each transport (`dds`: 'project' =
+config/fastdds_loopback.xml, 'default' = Fast DDS's default 512 kB shared-memory segment, where
+a 3 MB cloud travels in fragments; fhld_ros/ros/env.py) has its own bench process, ``python -m
+fhld_ros.commands.bench_e2e --dds NAME``, which prints its summary as one JSON line last;
+bench_e2e names the keys by transport: e2e_latency_ms_p50 -> e2e_project_latency_ms_p50,
+sweeps_dropped -> e2e_default_sweeps_dropped.
 """
 from __future__ import annotations
 
+import argparse
+import json
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -22,7 +32,7 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-from fhld_ros.ros.env import loopback_dds_env
+from fhld_ros.ros.env import PROFILES, loopback_dds_env
 from fhld_ros.sim.simulator import Simulator, Sweep
 from msg_adapters.family import rclpy_family
 from msg_adapters.lanes import marker_array_stamp_ns
@@ -36,6 +46,10 @@ DISTINCT_SWEEPS = 50  # simulated once, then replayed with fresh stamps
 RATE_HZ = 10.0
 START_NS = 1_700_000_000_000_000_000  # stamp of the first sweep
 NODE_START_TIMEOUT_SEC = 60.0
+CHILD_SLACK_SEC = 240.0  # a transport's child beyond its seconds: imports, node start, shutdown
+# the node's own counters (/diagnostics) reported as node_<name>, 0.0 when it has none yet
+NODE_COUNTERS = ('clouds_without_odometry', 'odometry_timeouts', 'clouds_lost_in_dds',
+                 'odometry_lost_in_dds', 'sweeps_skipped')
 
 
 def _sweeps(count: int) -> list[Sweep]:
@@ -128,6 +142,7 @@ def _summary(seconds: float, published: dict[int, float], arrivals: list[tuple[i
         # the node's own view (its /diagnostics): stage medians from callback arrival
         **{f'node_{k}': float(v) for k, v in node_diag.items()
            if k.startswith(('stage_', 'latency_ms_'))},
+        **{f'node_{k}': float(node_diag.get(k, 0.0)) for k in NODE_COUNTERS},
     }
 
 
@@ -160,8 +175,9 @@ class _RssSampler:
                 'node_rss_growth_mb': float(last - first)}
 
 
-def bench_e2e(seconds: float = SECONDS) -> dict[str, float]:
-    os.environ.update(loopback_dds_env())  # before the node starts and rclpy.init reads it
+def _measure(seconds: float, dds: str) -> dict[str, float]:
+    """One transport in this process: the node as a child process, sweeps, /lanes timed."""
+    os.environ.update(loopback_dds_env(dds=dds))  # before the node starts and rclpy.init reads it
     sweeps = _sweeps(DISTINCT_SWEEPS)
     node = _start_node()
     context = rclpy.Context()
@@ -179,3 +195,55 @@ def bench_e2e(seconds: float = SECONDS) -> dict[str, float]:
         client.close()
         context.try_shutdown()
     return {**_summary(seconds, published, client.arrivals, client.node_diag), **memory}
+
+
+def _transport_keys(dds: str, summary: dict[str, float]) -> dict[str, float]:
+    """e2e_X -> e2e_{dds}_X, any other K -> e2e_{dds}_K."""
+    return {f'e2e_{dds}_{k.removeprefix("e2e_")}': v for k, v in summary.items()}
+
+
+def _run_child(seconds: float, dds: str) -> dict[str, float]:
+    """_measure(seconds, dds) in a child process with that transport's DDS profile."""
+    env = loopback_dds_env(dds=dds)  # loopback only, a fresh random domain
+    env['FHLD_BENCH_E2E_PARAMS'] = ' '.join(PARAMS)
+    # its own session: on a timeout the child and the node it started go together
+    child = subprocess.Popen(
+        [sys.executable, '-m', 'fhld_ros.commands.bench_e2e', '--dds', dds,
+         '--seconds', str(seconds)],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        start_new_session=True)
+    try:
+        out, err = child.communicate(timeout=seconds + CHILD_SLACK_SEC)
+    except subprocess.TimeoutExpired:
+        os.killpg(child.pid, signal.SIGKILL)
+        out, err = child.communicate()
+        err += f'\n(timed out after {seconds + CHILD_SLACK_SEC:.0f} s)'
+    lines = out.strip().splitlines()
+    if child.returncode != 0 or not lines:
+        tail = '\n'.join(err.strip().splitlines()[-20:])
+        raise RuntimeError(f'bench e2e over the {dds!r} transport failed '
+                           f'(exit {child.returncode}):\n{tail}')
+    return _transport_keys(dds, json.loads(lines[-1]))
+
+
+def bench_e2e(seconds: float = SECONDS,
+              dds: tuple[str, ...] = ('project', 'default')) -> dict[str, float]:
+    """The node end to end over each transport in `dds`, one after the other."""
+    dds = (dds,) if isinstance(dds, str) else tuple(dds)
+    unknown = [name for name in dds if name not in PROFILES]
+    if unknown:
+        raise ValueError(f'unknown DDS transport {", ".join(unknown)} '
+                         f'(choose from {", ".join(PROFILES)})')
+    results: dict[str, float] = {}
+    for name in dds:
+        results.update(_run_child(seconds, name))
+    return results
+
+
+if __name__ == '__main__':
+    parser = argparse.ArgumentParser(description='one transport of `fhld bench e2e`: its '
+                                     'summary as one JSON line last on stdout')
+    parser.add_argument('--dds', choices=list(PROFILES), default='project')
+    parser.add_argument('--seconds', type=float, default=SECONDS)
+    cli = parser.parse_args()
+    print(json.dumps(_measure(cli.seconds, cli.dds)), flush=True)

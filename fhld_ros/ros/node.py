@@ -40,7 +40,7 @@ from fhld_ros.pipeline import LanePipeline
 from fhld_ros.ros import stop
 from fhld_ros.ros.diagnostics import NodeStats
 from fhld_ros.ros.executor import HandoffExecutor
-from fhld_ros.ros.input_silence import InputSilence
+from fhld_ros.ros.odometry_wait import InputSilence, OdometryLateness
 from fhld_ros.ros.parameters import DetectorParams, type_problem
 from msg_adapters.family import rclpy_family, stamp_to_ns
 from msg_adapters.lanes import lane_to_path_cdr, lanes_to_marker_array_cdr
@@ -113,6 +113,13 @@ class LaneDetectorNode(Node):
         # odom_wait_sec of wall time (the pipeline's own bound needs newer messages). Not ROS
         # time: with use_sim_time it stops with the bag, the poll with it.
         self.silence = InputSilence(self.params.odom_wait_sec)
+        # Sweeps waiting for odometry (stamp -> arrival) and how long odometry usually takes;
+        # a thread lets in, extrapolated, those that waited well past that (odometry_wait.py)
+        self.lateness = OdometryLateness(self.params.odom_wait_sec)
+        self.waiting_since: dict[int, float] = {}
+        self.extrapolation_tried: set[int] = set()
+        self.waiting_changed = threading.Condition()
+        self.closing = False
         # rate_hz limits detections by sweep stamps, not by when the last detection ran: a
         # limit on the clock phase-locked detections behind arrivals (measured: +40 ms of
         # waiting per sweep).
@@ -120,6 +127,10 @@ class LaneDetectorNode(Node):
         self.stats = NodeStats(self.min_interval_ns)
         self.last_detected_stamp_ns: int | None = None
         self._create_interfaces()
+        self.late_odometry = threading.Thread(target=self._watch_late_odometry, daemon=True,
+                                              name='late_odometry')
+        if self.params.odom_extrapolate_sec > 0:
+            self.late_odometry.start()
         self.get_logger().info(f'lane_detector ready: {self.params.detector} detector, clouds '
                                f'on {self.resolve_topic_name(self.params.points_topic)}')
 
@@ -232,8 +243,15 @@ class LaneDetectorNode(Node):
         try:
             with self.lock:
                 newest = self.pipeline.grid.newest_stamp_ns
-                self.pipeline.add_odometry(msg)
+                let_in = self.pipeline.add_odometry(msg)
                 inserted = self.pipeline.grid.newest_stamp_ns != newest
+                own_pose = self.lateness.pose(stamp_to_ns(msg.header.stamp))
+                now = time.monotonic()
+                for stamp in let_in:
+                    if stamp in self.waiting_since:
+                        waited = now - self.waiting_since.pop(stamp)
+                        if own_pose:  # not the next one after a pose lost on the way
+                            self.lateness.came(waited)
         except Exception as exc:  # a bad message never takes the node down
             self._drop('bad_odometry', exc)
             return
@@ -251,18 +269,63 @@ class LaneDetectorNode(Node):
         try:
             with self.lock:
                 self.pipeline.add_cloud(msg)
-                self.stats.cloud_ingested(stamp_to_ns(msg.header.stamp), arrived,
-                                          time.monotonic())
+                stamp = stamp_to_ns(msg.header.stamp)
+                self.stats.cloud_ingested(stamp, arrived, time.monotonic())
                 no_odometry = not self.pipeline.uses_odometry
+                waiting = self.pipeline.is_waiting(stamp)
+                if waiting:
+                    self.waiting_since[stamp] = arrived
+                elif not no_odometry and not self.pipeline.odometry_stopped:
+                    self.lateness.came(0.0)  # its odometry was there first
         except Exception as exc:
             self._drop('bad_clouds', exc)
             return
+        if waiting:
+            with self.waiting_changed:
+                self.waiting_changed.notify()
         self.wake_detection.trigger()
         self._report_odometry()
         if no_odometry and not self.said_no_odometry:
             self.said_no_odometry = True
             self.get_logger().info(f'no odometry on {self.params.odom_topic} yet: '
                                    'detecting per sweep in the cloud frame')
+
+    def _watch_late_odometry(self) -> None:
+        """Thread: sweeps that waited for their odometry longer than it usually takes go in
+        with extrapolated poses (LanePipeline.extrapolate_waiting), so that a pose DDS lost
+        costs neither the sweep nor a wait for the next pose that survives."""
+        with self.waiting_changed:
+            while not self.closing:
+                self.waiting_changed.wait(self._extrapolate_late())
+
+    def _extrapolate_late(self) -> float | None:
+        """Let the late sweeps in; seconds until the next waiting sweep is late (None: none
+        waits)."""
+        now = time.monotonic()
+        patience = self.lateness.patience()
+        with self.lock:
+            waiting = {w[0] for w in self.pipeline.pending}
+            self.waiting_since = {s: t for s, t in self.waiting_since.items() if s in waiting}
+            self.extrapolation_tried &= waiting
+            untried = {s: t for s, t in self.waiting_since.items()
+                       if s not in self.extrapolation_tried}
+            late = [s for s, t in untried.items() if t + patience <= now]
+            let_in = self.pipeline.extrapolate_waiting(max(late)) if late else []
+            self.extrapolation_tried.update(late)  # too far past the poses: they wait on
+            for stamp in let_in:
+                del self.waiting_since[stamp]
+            due = [t + patience for s, t in untried.items() if s not in late]
+        if let_in:
+            self.wake_detection.trigger()
+        return max(min(due) - now, 0.0) if due else None
+
+    def destroy_node(self) -> None:
+        with self.waiting_changed:
+            self.closing = True
+            self.waiting_changed.notify()
+        if self.late_odometry.is_alive():
+            self.late_odometry.join(timeout=5)
+        super().destroy_node()
 
     def on_detection_due(self) -> None:
         if not self.detecting.acquire(blocking=False):

@@ -38,6 +38,7 @@ _RANGES: dict[str, tuple[bool, float, bool, float]] = {
     'rate_hz': (False, 0, False, 1000),
     'max_points': (True, 0, False, 1 << 28),
     'odom_wait_sec': (False, 0, True, 10),
+    'odom_extrapolate_sec': (False, 0, True, 0.5),
     'intensity_scale': (False, 0, True, 1e9),
 }
 
@@ -109,6 +110,10 @@ class DetectorParams:
         1.0, 'a sweep newer than the newest odometry waits for it until a message stamped '
         'this much later arrives (live: or this long passes without any message); then it is '
         'detected alone in the cloud frame, as are the next sweeps until odometry resumes')
+    odom_extrapolate_sec: float = documented(
+        0.2, 'live only: a sweep whose odometry is later than odometry usually is (a pose lost '
+        'in DDS) goes in with the motion of the newest poses continued, when it lies at most '
+        'this far past the newest pose; 0 = it waits (odom_wait_sec)')
     intensity_scale: float = documented(
         0.0, 'checkpoints with absolute intensity only: full scale of the intensity field; '
         '0 = infer per sweep (1, 255, 65535). Contrast-encoded weights need none')
