@@ -20,7 +20,6 @@ from __future__ import annotations
 import bisect
 import collections
 import time
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -29,28 +28,13 @@ from scipy.optimize import linear_sum_assignment
 
 from fhld_ros.bev import BevSpec
 from fhld_ros.intensity import ABSOLUTE
+from fhld_ros.pose_buffer import TIME_BACK_NS, PoseBuffer
 from fhld_ros.rolling_grid import BevWindow, RollingBevGrid
 from fhld_ros.ros.parameters import DetectorParams
 from msg_adapters.family import stamp_to_ns
-from msg_adapters.odometry import (
-    euler_to_matrix,
-    extrapolate_pose,
-    interpolate_pose,
-    odometry_to_matrix,
-)
+from msg_adapters.odometry import euler_to_matrix, odometry_to_matrix
 from msg_adapters.pointcloud2 import read_xyzi
 
-ODOM_HISTORY = 4000  # poses kept at most (20 s at 200 Hz) ...
-ODOM_HISTORY_NS = 5_000_000_000  # ... and no older than this behind the newest
-# Poses further apart than this are not interpolated between: odometry stopped in between.
-# As long as the longest wait for odometry (odom_wait_sec's default): a burst of poses lost in
-# DDS (measured: up to 5 in a row of 10 Hz poses) leaves gaps over 0.5 s, and a sweep in one
-# going in alone would reset the grid.
-ODOM_MAX_GAP_NS = 1_000_000_000
-# Extrapolation continues the motion between the newest pose and one at least this much older
-# (two poses 5 ms apart at 200 Hz would scale their jitter 20-fold over 100 ms)
-EXTRAPOLATION_BASE_NS = 50_000_000
-TIME_BACK_NS = 1_000_000_000  # a stamp this far behind the newest: time went back (bag loop)
 MAX_PENDING = 32  # waiting sweeps at most, whatever the stamps say (memory bound)
 
 
@@ -74,67 +58,6 @@ class LaneOutput:
     ego_left: np.ndarray | None
     ego_right: np.ndarray | None
     timings_ms: dict[str, float] = field(default_factory=dict)
-
-
-class PoseBuffer:
-    """Recent stamped poses of one frame pair, interpolated at query stamps."""
-
-    def __init__(self, capacity: int = ODOM_HISTORY) -> None:
-        self.capacity = capacity
-        self.stamps: list[int] = []
-        self.poses: list[np.ndarray] = []
-
-    def clear(self) -> None:
-        self.stamps.clear()
-        self.poses.clear()
-
-    @property
-    def newest(self) -> int | None:
-        return self.stamps[-1] if self.stamps else None
-
-    def add(self, stamp_ns: int, pose: np.ndarray) -> None:
-        if self.stamps and stamp_ns < self.stamps[-1] - TIME_BACK_NS:
-            self.clear()  # time went back (bag loop): old poses belong to another run
-        index = bisect.bisect(self.stamps, stamp_ns)
-        self.stamps.insert(index, stamp_ns)
-        self.poses.insert(index, pose)
-        old = bisect.bisect_left(self.stamps, self.stamps[-1] - ODOM_HISTORY_NS)
-        old = max(old, len(self.stamps) - self.capacity)
-        if old > 0:
-            del self.stamps[:old], self.poses[:old]
-
-    def at(self, stamp_ns: int) -> np.ndarray | None:
-        """Pose at stamp_ns, or None when no two poses at most ODOM_MAX_GAP_NS apart (or one
-        at exactly stamp_ns) surround it: no extrapolation, no hold."""
-        return pose_at(self.stamps, self.poses, stamp_ns, ODOM_MAX_GAP_NS)
-
-    def extrapolated(self, stamp_ns: int, max_ahead_ns: int) -> np.ndarray | None:
-        """Pose at a stamp past the newest one, by at most max_ahead_ns: the motion from a pose
-        EXTRAPOLATION_BASE_NS or more before the newest (at most ODOM_MAX_GAP_NS) continued.
-        None when the stamp is not in that reach or no such older pose is kept."""
-        if not self.stamps or not 0 < stamp_ns - self.stamps[-1] <= max_ahead_ns:
-            return None
-        base = bisect.bisect_right(self.stamps, self.stamps[-1] - EXTRAPOLATION_BASE_NS) - 1
-        if base < 0 or self.stamps[-1] - self.stamps[base] > ODOM_MAX_GAP_NS:
-            return None
-        return extrapolate_pose(stamp_ns, self.stamps[base], self.poses[base], self.stamps[-1],
-                                self.poses[-1])
-
-
-def pose_at(stamps: Sequence[int], poses: Sequence[np.ndarray], stamp_ns: int,
-            max_gap_ns: int | None) -> np.ndarray | None:
-    """The pose at stamp_ns from sorted stamped poses: the one at exactly that stamp, else
-    interpolated between the two around it (None outside them, or when they lie more than
-    max_gap_ns apart)."""
-    index = bisect.bisect_left(stamps, stamp_ns)
-    if index < len(stamps) and stamps[index] == stamp_ns:
-        return poses[index]
-    if index == 0 or index == len(stamps):
-        return None
-    t0, t1 = int(stamps[index - 1]), int(stamps[index])
-    if max_gap_ns is not None and t1 - t0 > max_gap_ns:
-        return None
-    return interpolate_pose(stamp_ns, t0, poses[index - 1], t1, poses[index])
 
 
 class LaneIdTracker:

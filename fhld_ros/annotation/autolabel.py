@@ -23,7 +23,7 @@ from fhld_ros.annotation.lane_regions import LaneMembers, lane_members
 from fhld_ros.annotation.recovery import recover_lane
 from fhld_ros.evaluation.metrics import resample_polyline
 from fhld_ros.intensity import CONTRAST, GROUND_LEVEL, IntensityEncoder
-from fhld_ros.pipeline import pose_at
+from fhld_ros.pose_buffer import pose_at
 
 PAST_S = 0.5
 FUTURE_S = 2.0

@@ -1,10 +1,16 @@
 """`fhld realscans [DIR]`: the detector on real single LiDAR sweeps, scored against hand labels.
 
-Each sweep (a KITTI-layout `.bin`: float32 x y z intensity, sensor frame) goes through the
-node's own path: one PointCloud2 (create_cloud, fields x y z intensity float32) into a
-LanePipeline without odometry, so the window is that sweep alone in the cloud frame. The
-intensity is multiplied by a gain first (x1 = the sensor's own units) to see whether the lanes
-depend on the sensor's brightness scale. Labels and how they were made: docs/real_scans.md.
+Each sweep goes through the node's own path: one PointCloud2 (create_cloud, fields x y z
+intensity float32) into a LanePipeline without odometry, so the window is that sweep alone in
+the cloud frame. The intensity is multiplied by a gain first (x1 = the sensor's own units) to
+see whether the lanes depend on the sensor's brightness scale. Labels and how they were made:
+docs/real_scans.md.
+
+Sweep layouts, by file name (read_sweep): `*.fp16x5.bin` float16 x y z intensity dt (nuScenes
+sweeps accumulated in the newest one's LIDAR_TOP frame), `*.pcd.bin` float32 x y z intensity
+ring (one nuScenes LIDAR_TOP sweep), any other `.bin` float32 x y z intensity (KITTI, sensor
+frame). nuScenes' LIDAR_TOP frame has x right, y forward: it is turned into the sensor frame
+(x forward, y left, z up) as x = y_nu, y = -x_nu.
 
 Scores, in top view, inside the window (|x|, |y| < 12.8 m):
 * a labelled line is FOUND when >= 50 % of its points (resampled every 0.2 m) lie within
@@ -27,6 +33,7 @@ import numpy as np
 from fhld_ros.detectors import make_detector
 from fhld_ros.errors import ConfigError
 from fhld_ros.importing.kitti import read_bin
+from fhld_ros.importing.pcd import XYZI_DTYPE
 from fhld_ros.pipeline import LaneDetector, LanePipeline
 from fhld_ros.ros.parameters import DetectorParams
 from fhld_ros.training.samples import scale_intensity
@@ -40,6 +47,50 @@ STEP_M = 0.2  # resampling step of labels and lanes
 MATCH_M = 0.3  # top-view distance within which a point counts as on the other line
 SHARE = 0.5  # share of a line's points that must match
 GAINS = (1.0, 0.5, 2.0)
+# (name suffix, scalar type, fifth column or None, nuScenes LIDAR_TOP frame): the first match
+# wins, so '.bin' (KITTI) is last
+SWEEP_LAYOUTS: tuple[tuple[str, str, str | None, bool], ...] = (
+    ('.fp16x5.bin', '<f2', 'dt', True),
+    ('.pcd.bin', '<f4', 'ring', True),
+    ('.bin', '<f4', None, False),
+)
+
+
+def read_sweep(path: str | Path) -> np.ndarray:
+    """A sweep as a structured float32 array in the sensor frame (x forward, y left, z up).
+
+    Fields x, y, z, intensity, then the layout's fifth column where it has one: `ring` (laser
+    index, kept for a per-ring intensity normalisation) or `dt` (seconds before the newest of
+    the accumulated sweeps). The layout comes from the file name (SWEEP_LAYOUTS); KITTI files
+    go through importing.kitti.read_bin. ConfigError when the size does not fit the layout.
+    """
+    path = Path(path)
+    scalar, extra, lidar_top = next(
+        (layout[1:] for layout in SWEEP_LAYOUTS if path.name.endswith(layout[0])),
+        ('<f4', None, False))
+    if extra is None:
+        return read_bin(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise ConfigError(f'cannot read {path}: {exc.strerror or exc}') from None
+    width = 5 * np.dtype(scalar).itemsize
+    if len(raw) % width:
+        raise ConfigError(f'{path}: {len(raw)} bytes is not a multiple of {width} ({scalar} x, '
+                          f'y, z, intensity, {extra} per point): truncated or another layout')
+    columns = np.frombuffer(raw, dtype=scalar).reshape(-1, 5).astype(np.float32)
+    out = np.empty(len(columns), dtype=np.dtype(XYZI_DTYPE.descr + [(extra, '<f4')]))
+    out['x'], out['y'] = (columns[:, 1], -columns[:, 0]) if lidar_top else columns[:, :2].T
+    out['z'], out['intensity'], out[extra] = columns[:, 2:].T
+    return out
+
+
+def xyzi(points: np.ndarray) -> np.ndarray:
+    """The x y z intensity fields alone, packed (XYZI_DTYPE): what the scorer and cloud use."""
+    out = np.empty(len(points), dtype=XYZI_DTYPE)
+    for name in XYZI_DTYPE.names:
+        out[name] = points[name]
+    return out
 
 
 @dataclass(frozen=True)
@@ -196,7 +247,8 @@ def evaluate(directory: Path, params: DetectorParams, gains: tuple[float, ...] =
     if not present:
         raise ConfigError(f'{directory} holds none of the labelled scans '
                           f'({", ".join(scan.file for scan in all_labels)})')
-    sweeps = {scan.file: read_bin(directory / scan.file) for scan in present}  # ConfigError if bad
+    sweeps = {scan.file: xyzi(read_sweep(directory / scan.file))  # ConfigError if bad
+              for scan in present}
     detector = make_detector(params)
     half = params.size_px * params.resolution_m / 2
     scores = []

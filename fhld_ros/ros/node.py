@@ -6,14 +6,14 @@ so use_sim_time works) polls as well. Both run in their own callback group and n
 a wake-up with no new sweep, or during a running detection, is skipped, and a detection that
 ends with a newer sweep waiting starts on it at once. A bad message is dropped, counted and
 warned about (throttled). A sweep waits for its odometry in stream time (LanePipeline); the
-poll and the diagnostics timer add a wall-clock check for when messages stop altogether, and
-the node warns (throttled) while sweeps go in per sweep for want of odometry. Topics, frames
+poll and the diagnostics timer add a wall-clock check for when messages stop altogether, a
+thread lets in with extrapolated poses the sweeps whose pose DDS lost (ros/odometry_wait.py),
+and the node warns (throttled) while sweeps go in per sweep for want of odometry. Topics, frames
 and messages: docs/design.md §3.
 """
 from __future__ import annotations
 
 import gc
-import re
 import sys
 import threading
 import time
@@ -21,11 +21,9 @@ import time
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry, Path
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import QoSMessageLostInfo, SubscriptionEventCallbacks
-from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
@@ -33,15 +31,14 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
-from fhld_ros.dataclass_dict import field_docs, from_dict, to_plain
 from fhld_ros.detectors import make_detector
 from fhld_ros.errors import ConfigError
 from fhld_ros.pipeline import LanePipeline
 from fhld_ros.ros import stop
+from fhld_ros.ros.declare import declare_detector_params, rcl_reason
 from fhld_ros.ros.diagnostics import NodeStats
 from fhld_ros.ros.executor import HandoffExecutor
-from fhld_ros.ros.odometry_wait import InputSilence, OdometryLateness
-from fhld_ros.ros.parameters import DetectorParams, type_problem
+from fhld_ros.ros.odometry_wait import InputSilence, LateSweeps
 from msg_adapters.family import rclpy_family, stamp_to_ns
 from msg_adapters.lanes import lane_to_path_cdr, lanes_to_marker_array_cdr
 
@@ -52,45 +49,6 @@ QOS_CHECK_SEC = 1.0
 POLL_HZ = 20.0
 GIL_SWITCH_SEC = 0.0005  # see main()
 FAMILY = rclpy_family()
-
-
-# rclpy's refusal of a value of the wrong type (InvalidParameterTypeException's wording)
-_WRONG_TYPE = re.compile(
-    r"parameter '(?P<name>[^']+)' to '(?P<value>.*)' of type '(?P<given>\w+)'")
-TOPIC_PARAMS = ('points_topic', 'odom_topic', 'lanes_topic')
-
-
-def rcl_reason(exc: Exception) -> str:
-    """rcl's error text in one line, without its C source location."""
-    first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-    return re.sub(r'(\. Error: error not set)?, at /\S+$', '', first)
-
-
-def declare_detector_params(node: Node) -> DetectorParams:
-    """Declare every DetectorParams field, read-only and described by its doc; the values as
-    DetectorParams. Read-only because the node reads them once: `ros2 param set` is refused
-    with a reason instead of succeeding and changing nothing.
-
-    Raises ConfigError naming the parameter for a wrong type, a refused value or a topic name
-    ROS cannot use.
-    """
-    docs = field_docs(DetectorParams)
-    try:
-        declared = node.declare_parameters('', [
-            (name, default, ParameterDescriptor(description=docs[name], read_only=True))
-            for name, default in to_plain(DetectorParams()).items()])
-    except ParameterException as exc:
-        wrong = _WRONG_TYPE.search(str(exc))
-        raise ConfigError(type_problem(**wrong.groupdict()) if wrong else str(exc)) from None
-    params = from_dict(DetectorParams, {p.name: p.value for p in declared})
-    for name in TOPIC_PARAMS:
-        try:
-            node.resolve_topic_name(getattr(params, name))
-        except rclpy_implementation.RCLError as exc:
-            reason = rcl_reason(exc).removeprefix('failed to resolve name: ')
-            raise ConfigError(f'{name} {getattr(params, name)!r} is not a valid topic name: '
-                              f'{reason}') from None
-    return params
 
 
 class LaneDetectorNode(Node):
@@ -113,13 +71,6 @@ class LaneDetectorNode(Node):
         # odom_wait_sec of wall time (the pipeline's own bound needs newer messages). Not ROS
         # time: with use_sim_time it stops with the bag, the poll with it.
         self.silence = InputSilence(self.params.odom_wait_sec)
-        # Sweeps waiting for odometry (stamp -> arrival) and how long odometry usually takes;
-        # a thread lets in, extrapolated, those that waited well past that (odometry_wait.py)
-        self.lateness = OdometryLateness(self.params.odom_wait_sec)
-        self.waiting_since: dict[int, float] = {}
-        self.extrapolation_tried: set[int] = set()
-        self.waiting_changed = threading.Condition()
-        self.closing = False
         # rate_hz limits detections by sweep stamps, not by when the last detection ran: a
         # limit on the clock phase-locked detections behind arrivals (measured: +40 ms of
         # waiting per sweep).
@@ -127,10 +78,11 @@ class LaneDetectorNode(Node):
         self.stats = NodeStats(self.min_interval_ns)
         self.last_detected_stamp_ns: int | None = None
         self._create_interfaces()
-        self.late_odometry = threading.Thread(target=self._watch_late_odometry, daemon=True,
-                                              name='late_odometry')
+        # sweeps whose pose DDS lost go in extrapolated once late (odometry_wait.py)
+        self.late_sweeps = LateSweeps(self.pipeline, self.lock, self.params.odom_wait_sec,
+                                      self.wake_detection.trigger)
         if self.params.odom_extrapolate_sec > 0:
-            self.late_odometry.start()
+            self.late_sweeps.start()
         self.get_logger().info(f'lane_detector ready: {self.params.detector} detector, clouds '
                                f'on {self.resolve_topic_name(self.params.points_topic)}')
 
@@ -245,13 +197,8 @@ class LaneDetectorNode(Node):
                 newest = self.pipeline.grid.newest_stamp_ns
                 let_in = self.pipeline.add_odometry(msg)
                 inserted = self.pipeline.grid.newest_stamp_ns != newest
-                own_pose = self.lateness.pose(stamp_to_ns(msg.header.stamp))
-                now = time.monotonic()
-                for stamp in let_in:
-                    if stamp in self.waiting_since:
-                        waited = now - self.waiting_since.pop(stamp)
-                        if own_pose:  # not the next one after a pose lost on the way
-                            self.lateness.came(waited)
+                self.late_sweeps.odometry_in(stamp_to_ns(msg.header.stamp), let_in,
+                                             time.monotonic())
         except Exception as exc:  # a bad message never takes the node down
             self._drop('bad_odometry', exc)
             return
@@ -272,17 +219,10 @@ class LaneDetectorNode(Node):
                 stamp = stamp_to_ns(msg.header.stamp)
                 self.stats.cloud_ingested(stamp, arrived, time.monotonic())
                 no_odometry = not self.pipeline.uses_odometry
-                waiting = self.pipeline.is_waiting(stamp)
-                if waiting:
-                    self.waiting_since[stamp] = arrived
-                elif not no_odometry and not self.pipeline.odometry_stopped:
-                    self.lateness.came(0.0)  # its odometry was there first
+                self.late_sweeps.cloud_in(stamp, arrived)
         except Exception as exc:
             self._drop('bad_clouds', exc)
             return
-        if waiting:
-            with self.waiting_changed:
-                self.waiting_changed.notify()
         self.wake_detection.trigger()
         self._report_odometry()
         if no_odometry and not self.said_no_odometry:
@@ -290,41 +230,8 @@ class LaneDetectorNode(Node):
             self.get_logger().info(f'no odometry on {self.params.odom_topic} yet: '
                                    'detecting per sweep in the cloud frame')
 
-    def _watch_late_odometry(self) -> None:
-        """Thread: sweeps that waited for their odometry longer than it usually takes go in
-        with extrapolated poses (LanePipeline.extrapolate_waiting), so that a pose DDS lost
-        costs neither the sweep nor a wait for the next pose that survives."""
-        with self.waiting_changed:
-            while not self.closing:
-                self.waiting_changed.wait(self._extrapolate_late())
-
-    def _extrapolate_late(self) -> float | None:
-        """Let the late sweeps in; seconds until the next waiting sweep is late (None: none
-        waits)."""
-        now = time.monotonic()
-        patience = self.lateness.patience()
-        with self.lock:
-            waiting = {w[0] for w in self.pipeline.pending}
-            self.waiting_since = {s: t for s, t in self.waiting_since.items() if s in waiting}
-            self.extrapolation_tried &= waiting
-            untried = {s: t for s, t in self.waiting_since.items()
-                       if s not in self.extrapolation_tried}
-            late = [s for s, t in untried.items() if t + patience <= now]
-            let_in = self.pipeline.extrapolate_waiting(max(late)) if late else []
-            self.extrapolation_tried.update(late)  # too far past the poses: they wait on
-            for stamp in let_in:
-                del self.waiting_since[stamp]
-            due = [t + patience for s, t in untried.items() if s not in late]
-        if let_in:
-            self.wake_detection.trigger()
-        return max(min(due) - now, 0.0) if due else None
-
     def destroy_node(self) -> None:
-        with self.waiting_changed:
-            self.closing = True
-            self.waiting_changed.notify()
-        if self.late_odometry.is_alive():
-            self.late_odometry.join(timeout=5)
+        self.late_sweeps.close()
         super().destroy_node()
 
     def on_detection_due(self) -> None:

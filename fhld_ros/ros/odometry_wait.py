@@ -23,9 +23,15 @@ overtaken while they waited).
 from __future__ import annotations
 
 import collections
+import threading
 import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from fhld_ros.pipeline import LanePipeline
 
 CONFIRM_SEC = 0.1  # a few executor rounds: callbacks ready after a stall have run by then
 WAITS_KEPT = 100  # recent waits of sweeps whose odometry came
@@ -94,3 +100,85 @@ class OdometryLateness:
         else:
             usual = max(PATIENCE_FACTOR * float(np.percentile(self.waits, 90)), MIN_PATIENCE_SEC)
         return min(usual, self.limit_sec)
+
+
+class LateSweeps:
+    """The sweeps that wait for their odometry, and a thread that lets in, with extrapolated
+    poses (LanePipeline.extrapolate_waiting), those that waited longer than OdometryLateness
+    allows: a pose DDS lost then costs neither the sweep nor a wait for the next pose.
+
+    `lock` guards the pipeline; cloud_in / odometry_in are called with it held, right after the
+    pipeline took the message. `wake` is called when sweeps went in.
+    """
+
+    def __init__(self, pipeline: LanePipeline, lock: threading.Lock, limit_sec: float,
+                 wake: Callable[[], None]) -> None:
+        self.pipeline, self.lock, self.wake = pipeline, lock, wake
+        self.lateness = OdometryLateness(limit_sec)
+        self.since: dict[int, float] = {}  # waiting sweep stamp -> arrival (monotonic)
+        self.tried: set[int] = set()  # waiting sweeps too far past the poses to extrapolate
+        # wakes the thread: a new waiting sweep, or close(); taken without `lock` held by the
+        # thread, so the callbacks (which hold `lock`) can always notify
+        self.changed = threading.Condition()
+        self.notified = False
+        self.closing = False
+        self.thread = threading.Thread(target=self._run, daemon=True, name='late_sweeps')
+
+    def start(self) -> None:
+        self.thread.start()
+
+    def close(self) -> None:
+        with self.changed:
+            self.closing = self.notified = True
+            self.changed.notify()
+        if self.thread.is_alive():
+            self.thread.join(timeout=5)
+
+    def cloud_in(self, stamp_ns: int, arrived: float) -> None:
+        """After pipeline.add_cloud (lock held): note the sweep if it waits."""
+        if self.pipeline.is_waiting(stamp_ns):
+            self.since[stamp_ns] = arrived
+            with self.changed:
+                self.notified = True
+                self.changed.notify()
+        elif self.pipeline.uses_odometry and not self.pipeline.odometry_stopped:
+            self.lateness.came(0.0)  # its odometry was there first
+
+    def odometry_in(self, stamp_ns: int, let_in: list[int], now: float) -> None:
+        """After pipeline.add_odometry (lock held), which let the sweeps `let_in` in."""
+        own_pose = self.lateness.pose(stamp_ns)
+        for stamp in let_in:
+            if stamp in self.since:
+                waited = now - self.since.pop(stamp)
+                if own_pose:  # not the next pose after one lost on the way
+                    self.lateness.came(waited)
+
+    def _run(self) -> None:
+        while True:
+            timeout = self._let_in_late()
+            with self.changed:
+                if not self.notified:
+                    self.changed.wait(timeout)
+                if self.closing:
+                    return
+                self.notified = False
+
+    def _let_in_late(self) -> float | None:
+        """Let the late sweeps in; seconds until the next waiting sweep is late (None: none
+        waits)."""
+        now = time.monotonic()
+        patience = self.lateness.patience()
+        with self.lock:
+            waiting = {w[0] for w in self.pipeline.pending}
+            self.since = {s: t for s, t in self.since.items() if s in waiting}
+            self.tried &= waiting
+            untried = {s: t for s, t in self.since.items() if s not in self.tried}
+            late = [s for s, t in untried.items() if t + patience <= now]
+            let_in = self.pipeline.extrapolate_waiting(max(late)) if late else []
+            self.tried.update(late)  # those it could not reach wait on for their odometry
+            for stamp in let_in:
+                del self.since[stamp]
+            due = [t + patience for s, t in untried.items() if s not in late]
+        if let_in:
+            self.wake()
+        return max(min(due) - now, 0.0) if due else None
