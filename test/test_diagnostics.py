@@ -162,3 +162,26 @@ def test_a_sweep_that_waited_out_its_odometry_is_not_a_latency_problem():
     assert status(stats, 1.2, odometry_stopped=True).message == (
         'odometry stopped: detecting per sweep')
     assert max(stats.latencies_ms) == pytest.approx(1060.0)  # still in latency_ms_p95
+
+
+def test_clouds_and_poses_dds_lost_warn_and_lost_clouds_are_drops():
+    # DDS reports them lost (best-effort clouds over a small shared-memory segment, poses
+    # overrun by the cloud published after them); the node never saw them
+    assert assess(clean(clouds=20, lost=30)) == (
+        ERROR, 'dropped 30 of 50 clouds in 5 s (30 lost by DDS; 60% > 50%)')
+    assert assess(clean(odometry_lost=3)) == (
+        WARN, "DDS lost 3 odometry messages (a publisher's shared-memory segment overrun by "
+              'large messages: see the README on DDS)')
+    stats = NodeStats(MIN_INTERVAL_NS, now=0.0)
+    for k in range(30):
+        sweep(stats, 0.1 * k, k)
+    stats.lost_in_transport('clouds', 4, now=2.95)
+    stats.lost_in_transport('odometry', 2, now=2.95)
+    warned = status(stats, 3.0)
+    assert warned.level == WARN
+    assert 'dropped 4 of 34 clouds in 3 s (4 lost by DDS' in warned.message
+    assert 'DDS lost 2 odometry messages' in warned.message
+    values = {kv.key: kv.value for kv in warned.values}
+    assert (values['clouds_lost_in_dds'], values['odometry_lost_in_dds']) == ('4', '2')
+    assert values['window_clouds_dropped'] == '4'
+    assert 'lost' not in status(stats, 8.5).message  # out of the window

@@ -47,6 +47,7 @@ class Thresholds:
       Sweeps left out on purpose (a 20 Hz sensor at rate_hz 10) are not drops.
     - stale input: no cloud at all for this long (a 10 Hz sensor misses 20 sweeps in 2 s);
       before the first cloud the node WARNs that it waits for one.
+    Clouds or poses that DDS reports lost on the way are a WARN (lost clouds count as drops).
     A level trips when its value is above the threshold. Odometry that stopped (sweeps
     detected alone in the cloud frame) is a WARN for as long as it stays stopped: the pipeline
     knows when it comes back. Bad odometry in the window is a WARN; failed detections a WARN,
@@ -75,6 +76,7 @@ class WindowSummary:
     overtaken: int = 0
     lost: int = 0  # clouds DDS lost before they reached the node
     bad_odometry: int = 0
+    odometry_lost: int = 0  # poses DDS lost before they reached the node
     detections: int = 0
     detection_errors: int = 0
     latency_p95_ms: float | None = None
@@ -115,6 +117,10 @@ def assess(window: WindowSummary, odometry_stopped: bool = False,
         found.append((WARN, 'odometry stopped: detecting per sweep'))
     if window.bad_odometry:
         found.append((WARN, f'{window.bad_odometry} bad odometry messages dropped'))
+    if window.odometry_lost:
+        found.append((WARN, f'DDS lost {window.odometry_lost} odometry messages (a publisher\'s '
+                            'shared-memory segment overrun by large messages: see the README '
+                            'on DDS)'))
     if window.detection_errors:
         found.append((WARN if window.detections else ERROR,
                       f'{window.detection_errors} detections failed'))
@@ -165,8 +171,7 @@ class NodeStats:
     def lost_in_transport(self, what: str, count: int, now: float | None = None) -> None:
         """`count` more `what` ('clouds', 'odometry') that DDS lost before delivery."""
         self.counts[f'{what}_lost_in_dds'] += count
-        if what == 'clouds':
-            self._event('clouds_lost', now, count)
+        self._event(f'{what}_lost', now, count)
 
     def cloud_ingested(self, stamp_ns: int, arrived: float, done: float) -> None:
         self.stages_ms['ingest'].append((done - arrived) * 1e3)
@@ -212,6 +217,7 @@ class NodeStats:
             overtaken=int(sum(self._recent('sweeps_overtaken', now))),
             lost=int(sum(self._recent('clouds_lost', now))),
             bad_odometry=len(self._recent('bad_odometry', now)),
+            odometry_lost=int(sum(self._recent('odometry_lost', now))),
             detections=len(self._recent('detections', now)),
             detection_errors=len(self._recent('detection_errors', now)),
             latency_p95_ms=float(np.percentile(latencies, 95)) if latencies else None,
