@@ -14,18 +14,29 @@ import pytest
 from fhld_ros.errors import CliError
 from fhld_ros.evaluation import real_scans
 from fhld_ros.evaluation.real_scans import LabelledLine, ScanLabels, score_scan
-from fhld_ros.importing.kitti import read_bin
 from fhld_ros.ros.parameters import DetectorParams
 
 if not real_scans.DEFAULT_DIR.is_dir():
     pytest.skip(f'{real_scans.DEFAULT_DIR} is absent', allow_module_level=True)
 
 NO_PAINT = 'kitti_city_nopaint_09.bin'
-# lines the shipped weights find with these labels at every gain: 17 of 18 (`fhld realscans`),
-# 0 of 19 published lanes false (4 of 23 without the paint check, docs/real_scans.md); the
-# floor and ceiling sit a little beyond, so that losing lines or gaining false lanes fails
+# The floor and ceiling below hold for these eight sweeps (KITTI HDL-64E and Hesai 64). The
+# nuScenes HDL-32E sweeps labelled later are new development data, scored separately
+# (docs/real_scans.md): the shipped weights were chosen without them, so they are reported,
+# not held to this floor.
+FLOOR_SCANS = (
+    'kitti_training_000001.bin', 'kitti_training_000005.bin', 'kitti_testing_000001.bin',
+    'kitti_testing_000004.bin', NO_PAINT, 'pjlab_lidar2camera_manual_0.bin',
+    'pjlab_lidar2lidar_p64.bin', 'pjlab_lidar2camera_auto_calib.bin')
+# lines the shipped weights find on FLOOR_SCANS at every gain: 17 of 18 (`fhld realscans`),
+# 1 of 20 published lanes false (docs/real_scans.md); the floor and ceiling sit a little
+# beyond, so that losing lines or gaining false lanes fails
 FHLD_FOUND_FLOOR = 16
 FHLD_FALSE_CEILING = 0.06
+# "bright" in the paint check is this many times the road beside the line (default 1.3). The
+# accumulated nuScenes sweep's road has two surfaces: right of its line ~2 x as bright as left
+# of it (paint 3-5 x), so 1.3 x their pooled median counts the brighter asphalt as paint too
+BRIGHT_OVER_ROAD = {'nuscenes_10sweeps_ff9eff.fp16x5.bin': 2.0}
 
 
 @pytest.fixture(scope='module')
@@ -48,23 +59,26 @@ def test_label_file_is_well_formed(labels: list[ScanLabels]) -> None:
             assert np.all(np.diff(p[:, 0]) > 0), 'these roads run along x: vertices in x order'
             assert np.linalg.norm(np.diff(p[:, :2], axis=0), axis=1).max() <= 1.5
             # z on the road: at every vertex with returns within 0.5 m (none in the blind ring;
-            # those within 3.5 m of the sensor hit the car itself) the lowest is the label's z
+            # those within 3.5 m of the sensor hit the car itself) the lowest is the label's z;
+            # the second lowest, since one stray return may lie below the road (nuscenes_n008
+            # has one 0.42 m under its paint at x = 3.9 m, intensity 0: a multipath ghost)
             near = np.linalg.norm(points[None, :, :2] - p[:, None, :2], axis=2) < 0.5
             seen = (near.sum(axis=1) >= 3) & (np.hypot(p[:, 0], p[:, 1]) > 3.5)
-            lowest = np.array([points[mask, 2].min() for mask in near[seen]])
+            lowest = np.array([np.partition(points[mask, 2], 1)[1] for mask in near[seen]])
             assert np.abs(p[seen, 2] - lowest).max() < 0.15, (scan.file, line.id)
 
 
 def xyzi(path) -> np.ndarray:
-    """(N, 4) float32 x y z intensity of a sweep."""
-    return read_bin(path).view('<f4').reshape(-1, 4)
+    """(N, 4) float32 x y z intensity of a sweep in the sensor frame, read as the scorer does."""
+    return real_scans.xyzi(real_scans.read_sweep(path)).view('<f4').reshape(-1, 4)
 
 
-def _bright_share(points: np.ndarray, line: np.ndarray, shift: float) -> tuple[float, float]:
+def _bright_share(points: np.ndarray, line: np.ndarray, shift: float,
+                  factor: float = 1.3) -> tuple[float, float]:
     """Share of bright ground returns on the line (within 0.12 m) and beside it (0.5-1 m).
 
-    The line is moved `shift` metres sideways; bright = above 1.3 x the median intensity of
-    the road beside it. Lines run along x, so the lateral offset is y - line_y(x).
+    The line is moved `shift` metres sideways; bright = above `factor` x the median intensity
+    of the road beside it. Lines run along x, so the lateral offset is y - line_y(x).
     """
     lx, ly, lz = line[:, 0], line[:, 1] + shift, line[:, 2]
     inside = (points[:, 0] >= lx[0]) & (points[:, 0] <= lx[-1])
@@ -72,25 +86,28 @@ def _bright_share(points: np.ndarray, line: np.ndarray, shift: float) -> tuple[f
     offset = np.abs(y - np.interp(x, lx, ly))
     ground = np.abs(z - np.interp(x, lx, lz)) < 0.2
     on, side = ground & (offset < 0.12), ground & (offset > 0.5) & (offset < 1.0)
-    bright = intensity > 1.3 * np.median(intensity[side])
+    bright = intensity > factor * np.median(intensity[side])
     return float(bright[on].mean()), float(bright[side].mean())
 
 
-def _on_paint(points: np.ndarray, line: np.ndarray, shift: float = 0.0) -> bool:
+def _on_paint(points: np.ndarray, line: np.ndarray, shift: float = 0.0,
+              factor: float = 1.3) -> bool:
     """The line runs over paint: many bright returns, more than beside it and than 0.3 m off."""
-    on, side = _bright_share(points, line, shift)
-    nearby = max(_bright_share(points, line, shift + d)[0] for d in (-0.3, 0.3))
+    on, side = _bright_share(points, line, shift, factor)
+    nearby = max(_bright_share(points, line, shift + d, factor)[0] for d in (-0.3, 0.3))
     return on >= 0.25 and on >= 1.5 * side and on >= nearby
 
 
 def test_every_labelled_line_lies_on_bright_ground_points(labels: list[ScanLabels]) -> None:
     for scan in labels:
         points = xyzi(real_scans.DEFAULT_DIR / scan.file).astype(np.float64)
+        factor = BRIGHT_OVER_ROAD.get(scan.file, 1.3)
         for line in scan.lines:
-            assert _on_paint(points, line.points), (scan.file, line.id)
+            assert _on_paint(points, line.points, 0.0, factor), (scan.file, line.id)
             # the check can fail: the same line 1 m to either side is not on paint
             for shift in (-1.0, 1.0):
-                assert not _on_paint(points, line.points, shift), (scan.file, line.id, shift)
+                assert not _on_paint(points, line.points, shift, factor), (
+                    scan.file, line.id, shift)
 
 
 def _straight(y: float, x0: float = -12.8, x1: float = 12.8, z: float = -1.7) -> np.ndarray:
@@ -132,6 +149,26 @@ def test_distance_to_polylines_measures_to_segments() -> None:
     assert np.isinf(real_scans.distance_to_polylines(points, [])).all()
 
 
+def test_read_sweep_layouts_by_name(tmp_path) -> None:
+    # nuScenes LIDAR_TOP (x right, y forward): a point 2 m right, 5 m ahead -> x 5, y -2
+    row = [2.0, 5.0, -1.8, 40.0, 7.0]
+    (tmp_path / 'one.pcd.bin').write_bytes(np.array([row], '<f4').tobytes())
+    (tmp_path / 'acc.fp16x5.bin').write_bytes(np.array([row], '<f2').tobytes())
+    (tmp_path / 'kitti.bin').write_bytes(np.array([row[:4]], '<f4').tobytes())
+    one = real_scans.read_sweep(tmp_path / 'one.pcd.bin')
+    acc = real_scans.read_sweep(tmp_path / 'acc.fp16x5.bin')
+    kitti = real_scans.read_sweep(tmp_path / 'kitti.bin')
+    assert one.dtype.names == ('x', 'y', 'z', 'intensity', 'ring')
+    assert acc.dtype.names == ('x', 'y', 'z', 'intensity', 'dt')
+    for sweep in (one, acc):  # float16 keeps -1.8 to 1e-3
+        assert np.allclose(real_scans.xyzi(sweep).view('<f4'), [5, -2, -1.8, 40], atol=1e-3)
+    assert one['ring'][0] == 7.0 and acc['dt'][0] == 7.0
+    assert np.allclose(kitti.view('<f4'), [2, 5, -1.8, 40])  # KITTI: already x forward
+    (tmp_path / 'bad.pcd.bin').write_bytes(b'\0' * 24)
+    with pytest.raises(CliError, match='not a multiple of 20'):
+        real_scans.read_sweep(tmp_path / 'bad.pcd.bin')
+
+
 def test_bad_input_is_one_clear_error(tmp_path) -> None:
     (tmp_path / NO_PAINT).write_bytes(b'\0' * 10)  # not whole 16-byte points
     with pytest.raises(CliError, match='not a multiple of 16'):
@@ -155,9 +192,10 @@ def _command(argv: list[str], capsys: pytest.CaptureFixture) -> tuple[str, dict]
 def test_command_classical_all_gains(capsys: pytest.CaptureFixture) -> None:
     out, result = _command(['--detector', 'classical', '--json'], capsys)
     assert result['detector'] == 'classical' and set(result['totals']) == {'1', '0.5', '2'}
-    assert len(result['scans']) == 3 * 8
+    labels = real_scans.load_labels()
+    assert len(result['scans']) == 3 * len(labels)
     assert 'total gain    1 all' in out
-    assert result['totals']['1']['all']['labelled'] == 18
+    assert result['totals']['1']['all']['labelled'] == sum(len(scan.lines) for scan in labels)
 
 
 def test_shipped_weights_on_the_real_scans(capsys: pytest.CaptureFixture) -> None:
@@ -166,8 +204,17 @@ def test_shipped_weights_on_the_real_scans(capsys: pytest.CaptureFixture) -> Non
     for scan in result['scans']:
         if scan['file'] == NO_PAINT:
             assert scan['published'] == 0, 'lanes on a road without paint'
+    floor = real_scans.totals([_summary_score(scan) for scan in result['scans']
+                               if scan['file'] in FLOOR_SCANS])
     for gain in ('1', '4'):  # contrast against the road: the sensor's gain does not matter
-        total = result['totals'][gain]['all']
+        total = floor[gain]['all']
+        assert total['labelled'] == 18, 'the floor is for the eight original sweeps'
         assert total['found'] >= FHLD_FOUND_FLOOR, out
         assert total['false'] <= FHLD_FALSE_CEILING * total['published'], out
     assert result['totals']['1'] == result['totals']['4'], out
+
+
+def _summary_score(scan: dict) -> real_scans.ScanScore:
+    """A ScanScore back from its JSON summary (for totals over a subset of the sweeps)."""
+    return real_scans.ScanScore(scan['file'], scan['sensor'], scan['gain'], scan['line_cover'],
+                                scan['lane_cover'])

@@ -106,6 +106,7 @@ class ScanLabels:
     sensor: str
     lines: tuple[LabelledLine, ...]
     notes: str = ''
+    format: str = ''  # how a non-KITTI file was read and turned into the sensor frame
 
 
 @dataclass
@@ -155,7 +156,8 @@ def load_labels(path: Path = LABELS) -> list[ScanLabels]:
         ids = [line.id for line in lines]
         if len(set(ids)) != len(ids):
             raise ValueError(f"{scan['file']}: duplicate line ids")
-        scans.append(ScanLabels(scan['file'], scan['sensor'], tuple(lines), scan.get('notes', '')))
+        scans.append(ScanLabels(scan['file'], scan['sensor'], tuple(lines), scan.get('notes', ''),
+                                scan.get('format', '')))
     return scans
 
 
