@@ -13,7 +13,10 @@ stream's own time, so a replay is deterministic (the live node adds a clock chec
 messages stop altogether: expire_waiting). A sweep that no odometry covers then (odometry
 stopped, or the sweep is older than the buffer) is detected on its own in the cloud frame and
 counted as clouds_without_odometry. While odometry stays away, a sweep waits only until a newer
-message arrives (the next cloud, or the odometry coming back, which then covers it).
+message arrives (the next cloud, or the odometry coming back, which then covers it). A sweep
+between two poses too far apart to interpolate waits in the same way: the poses between may
+still come (DDS lost them, a reliable writer resends them). The live node also lets late sweeps
+in with extrapolated poses (extrapolate_waiting, ros/odometry_wait.py).
 """
 from __future__ import annotations
 
@@ -162,10 +165,13 @@ class LanePipeline:
         stamp_ns = stamp_to_ns(msg.header.stamp)
         self.odom_frame, self.odom_child = frame, str(msg.child_frame_id)
         self._saw(stamp_ns)
-        self.odometry.add(stamp_ns, pose)
+        if not self.odometry.add(stamp_ns, pose):
+            return []  # a pose it has (the node's second odometry subscription)
         self.counters['odometry'] += 1
-        self.odometry_stopped = False  # it is back: sweeps wait for their odometry again
-        return self._release()
+        # it is back: sweeps wait for their odometry again; but those that waited while it was
+        # away, in the gap it left, go in alone now (nothing will fill that gap)
+        resumed, self.odometry_stopped = self.odometry_stopped, False
+        return self._release(wait_in_gaps=not resumed)
 
     def sensor_pose(self, stamp_ns: int, cloud_frame: str,
                     extrapolate_ns: int = 0) -> np.ndarray | None:
@@ -236,22 +242,28 @@ class LanePipeline:
         if self.newest_seen_ns is None or stamp_ns > self.newest_seen_ns:
             self.newest_seen_ns = stamp_ns
 
-    def _pose_for(self, stamp_ns: int, frame: str) -> Any:
+    def _pose_for(self, stamp_ns: int, frame: str, wait_in_gaps: bool = True) -> Any:
         """The sweep's pose, None when it will never have one, or _WAIT."""
         newest = self.odometry.newest
         if newest is None:  # none yet, or none since time went back
             return _WAIT if self.expect_odometry or self.uses_odometry else None
         if stamp_ns > newest:
             return _WAIT
-        return self.sensor_pose(stamp_ns, frame)
+        pose = self.sensor_pose(stamp_ns, frame)
+        if pose is None and wait_in_gaps and not self.odometry_stopped \
+                and stamp_ns >= self.odometry.oldest:
+            # in a gap too wide to interpolate: a pose DDS lost may still come (a reliable
+            # writer resends it), so it waits as for odometry still on its way
+            return _WAIT
+        return pose
 
-    def _release(self, force: int = 0) -> list[int]:
+    def _release(self, force: int = 0, wait_in_gaps: bool = True) -> list[int]:
         """Insert waiting sweeps from the oldest on, while each has its pose, never will, or
         has waited long enough (or is one of the `force` oldest). Returns their stamps."""
         inserted: list[int] = []
         while self.pending:
             stamp_ns, frame, xyz, intensity = self.pending[0]
-            pose = self._pose_for(stamp_ns, frame)
+            pose = self._pose_for(stamp_ns, frame, wait_in_gaps)
             if pose is _WAIT:
                 # stopped: no full wait, but odometry coming back just after this sweep's
                 # cloud still covers it; and a run that never had odometry does not wait

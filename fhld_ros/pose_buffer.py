@@ -35,36 +35,48 @@ class PoseBuffer:
         self.poses.clear()
 
     @property
+    def oldest(self) -> int | None:
+        return self.stamps[0] if self.stamps else None
+
+    @property
     def newest(self) -> int | None:
         return self.stamps[-1] if self.stamps else None
 
-    def add(self, stamp_ns: int, pose: np.ndarray) -> None:
-        if self.stamps and stamp_ns < self.stamps[-1] - TIME_BACK_NS:
-            self.clear()  # time went back (bag loop): old poses belong to another run
+    def add(self, stamp_ns: int, pose: np.ndarray) -> bool:
+        """Keep a pose; False (nothing changes) when one of that stamp is kept already."""
+        if self.stamps and stamp_ns < self.stamps[0] - TIME_BACK_NS:
+            # time went back (bag loop): old poses belong to another run. A pose inside the
+            # kept span is a late one (a reliable writer resends what DDS lost seconds later)
+            self.clear()
         index = bisect.bisect(self.stamps, stamp_ns)
+        if index and self.stamps[index - 1] == stamp_ns:
+            return False
         self.stamps.insert(index, stamp_ns)
         self.poses.insert(index, pose)
         old = bisect.bisect_left(self.stamps, self.stamps[-1] - ODOM_HISTORY_NS)
         old = max(old, len(self.stamps) - self.capacity)
         if old > 0:
             del self.stamps[:old], self.poses[:old]
+        return True
 
     def at(self, stamp_ns: int) -> np.ndarray | None:
         """Pose at stamp_ns, or None when no two poses at most ODOM_MAX_GAP_NS apart (or one
         at exactly stamp_ns) surround it: no extrapolation, no hold."""
         return pose_at(self.stamps, self.poses, stamp_ns, ODOM_MAX_GAP_NS)
 
-    def extrapolated(self, stamp_ns: int, max_ahead_ns: int) -> np.ndarray | None:
-        """Pose at a stamp past the newest one, by at most max_ahead_ns: the motion from a pose
-        EXTRAPOLATION_BASE_NS or more before the newest (at most ODOM_MAX_GAP_NS) continued.
-        None when the stamp is not in that reach or no such older pose is kept."""
-        if not self.stamps or not 0 < stamp_ns - self.stamps[-1] <= max_ahead_ns:
+    def extrapolated(self, stamp_ns: int, reach_ns: int) -> np.ndarray | None:
+        """Pose at a stamp at most reach_ns after the newest pose before it (past the newest,
+        or inside a gap too wide to interpolate): the motion from a pose EXTRAPOLATION_BASE_NS
+        or more before that one (at most ODOM_MAX_GAP_NS) continued. None when the stamp is
+        not in that reach or no such older pose is kept."""
+        last = bisect.bisect_left(self.stamps, stamp_ns) - 1
+        if last < 0 or not 0 < stamp_ns - self.stamps[last] <= reach_ns:
             return None
-        base = bisect.bisect_right(self.stamps, self.stamps[-1] - EXTRAPOLATION_BASE_NS) - 1
-        if base < 0 or self.stamps[-1] - self.stamps[base] > ODOM_MAX_GAP_NS:
+        base = bisect.bisect_right(self.stamps, self.stamps[last] - EXTRAPOLATION_BASE_NS) - 1
+        if base < 0 or self.stamps[last] - self.stamps[base] > ODOM_MAX_GAP_NS:
             return None
-        return extrapolate_pose(stamp_ns, self.stamps[base], self.poses[base], self.stamps[-1],
-                                self.poses[-1])
+        return extrapolate_pose(stamp_ns, self.stamps[base], self.poses[base],
+                                self.stamps[last], self.poses[last])
 
 
 def pose_at(stamps: Sequence[int], poses: Sequence[np.ndarray], stamp_ns: int,

@@ -55,6 +55,9 @@ def test_pose_buffer_interpolates_inside_and_refuses_outside_and_across_gaps():
     # old poses leave by age, and all of them when time goes back
     buffer.add(7_000_000_000, np.eye(4))
     assert buffer.stamps == [2_500_000_000, 7_000_000_000]
+    # a late pose inside the kept span goes in (once); one before it all means a new run
+    assert buffer.add(4_000_000_000, np.eye(4)) and not buffer.add(4_000_000_000, np.eye(4))
+    assert buffer.stamps == [2_500_000_000, 4_000_000_000, 7_000_000_000]
     buffer.add(100, np.eye(4))
     assert buffer.stamps == [100]
 
@@ -221,7 +224,10 @@ def test_pose_buffer_extrapolates_the_newest_motion_a_bounded_way_ahead():
     np.testing.assert_allclose(ahead[:3, 3], [2.0, 0.0, 0.0], atol=0.01)
     np.testing.assert_allclose(np.arctan2(ahead[1, 0], ahead[0, 0]), 0.02, atol=1e-9)
     assert buffer.extrapolated(300_000_001, 200_000_000) is None  # past the reach
-    assert buffer.extrapolated(100_000_000, 200_000_000) is None  # covered: not extrapolated
+    # inside a gap too wide to interpolate: continued from the pose before it
+    buffer.add(1_300_000_000, euler_to_matrix(13, 0, 0, 0, 0, 0.13))
+    inside = buffer.extrapolated(200_000_000, 200_000_000)
+    np.testing.assert_allclose(inside[:3, 3], [2.0, 0.0, 0.0], atol=0.01)
     lone = PoseBuffer()
     lone.add(0, np.eye(4))
     assert lone.extrapolated(50_000_000, 200_000_000) is None  # one pose: no motion known
@@ -253,3 +259,18 @@ def test_late_sweeps_go_in_extrapolated_up_to_the_reach_and_in_stamp_order():
     off.add_odometry(_odom(100_000_000, np.eye(4)))
     off.add_cloud(_cloud(200_000_000))
     assert off.extrapolate_waiting(200_000_000) == [] and off.is_waiting(200_000_000)
+
+
+def test_a_sweep_in_a_gap_too_wide_waits_for_the_late_poses_that_fill_it():
+    # DDS lost the poses around it; the reliable reader gets them resent seconds later
+    pipeline = LanePipeline(DetectorParams(size_px=64, resolution_m=0.5), FixedLanes([], []))
+    for stamp in (0, 100_000_000):
+        pipeline.add_odometry(_odom(stamp, euler_to_matrix(stamp * 2e-8, 0, 0, 0, 0, 0)))
+    pipeline.add_cloud(_cloud(300_000_000))
+    pipeline.add_odometry(_odom(1_300_000_000, euler_to_matrix(26, 0, 0, 0, 0, 0)))
+    assert pipeline.is_waiting(300_000_000)  # 1.2 s between the poses around it
+    for stamp in (200_000_000, 400_000_000):  # resent
+        pipeline.add_odometry(_odom(stamp, euler_to_matrix(stamp * 2e-8, 0, 0, 0, 0, 0)))
+    assert not pipeline.pending and pipeline.counters['clouds_without_odometry'] == 0
+    pipeline.detect()
+    np.testing.assert_allclose(pipeline.detector.windows[-1].window_to_output[:3, 3], [6, 0, 0])

@@ -102,17 +102,24 @@ class LaneDetectorNode(Node):
         self._subscribe_points(ReliabilityPolicy.BEST_EFFORT
                                if p.input_reliability == 'best_effort'
                                else ReliabilityPolicy.RELIABLE)
-        # Best effort whatever the publisher: a reliable reader delivers in order, so one lost
-        # pose held back every later one until the writer's next heartbeat repaired it (measured
-        # with Fast DDS's default 512 kB shared-memory segment, which a 3 MB cloud overruns:
-        # poses 0.9-2.9 s late, p50 950 ms, while best effort got all of them in 2-4 ms). A
-        # pose that is lost is bridged by interpolation between its neighbours.
+        # Odometry twice: best effort, so that a pose lost in DDS never holds back the next (a
+        # reliable reader delivers in order: with Fast DDS's default 512 kB shared-memory
+        # segment, which a 3 MB cloud published after the pose overruns, poses came 0.9-2.9 s
+        # late, p50 950 ms, against 2-4 ms best effort); and reliable, when the publisher is,
+        # for the poses the best-effort reader lost, resent by the writer up to seconds later
+        # (with 80 % of the poses lost, sweeps with neither pose nor reach for extrapolation
+        # went in alone and reset the grid). The pipeline keeps one pose per stamp.
         self.create_subscription(
             Odometry, p.odom_topic, self.on_odometry,
             QoSProfile(depth=50, reliability=ReliabilityPolicy.BEST_EFFORT),
             callback_group=odometry,
             event_callbacks=SubscriptionEventCallbacks(
                 message_lost=lambda info: self.on_lost('odometry', info)))
+        self.create_subscription(
+            Odometry, p.odom_topic, self.on_odometry,
+            QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE),
+            callback_group=odometry,  # (a best-effort publisher simply does not match it)
+            event_callbacks=SubscriptionEventCallbacks(incompatible_qos=lambda info: None))
         out_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
         self.lanes_pub = self.create_publisher(MarkerArray, p.lanes_topic, out_qos)
         self.left_pub = self.create_publisher(Path, f'{p.lanes_topic}/ego_left', out_qos)
