@@ -38,6 +38,9 @@ from msg_adapters.family import stamp_to_ns
 from msg_adapters.odometry import euler_to_matrix, odometry_to_matrix
 from msg_adapters.pointcloud2 import read_xyzi
 
+# sweeps held back by their odometry that still get their own window, at most (the newest of
+# them): each costs the newest sweep one more detection of waiting
+HELD_BACK_MAX = 2
 MAX_PENDING = 32  # waiting sweeps at most, whatever the stamps say (memory bound)
 
 
@@ -124,9 +127,14 @@ class LanePipeline:
     """Odometry + clouds -> rolling BEV grid -> detector -> lanes in the output frame."""
 
     def __init__(self, params: DetectorParams, detector: LaneDetector,
-                 expect_odometry: bool = True) -> None:
+                 expect_odometry: bool = True, detect_held_back: bool = False) -> None:
         self.params = params
         self.detector = detector
+        # The live node's: sweeps that waited for their odometry and went in together with
+        # newer ones (a pose DDS lost, resent later) get windows of their own, oldest first,
+        # instead of being overtaken by the newest (take_window)
+        self.held_back: collections.deque[int] | None = \
+            collections.deque(maxlen=HELD_BACK_MAX) if detect_held_back else None
         # False when it is known that no odometry will come (a bag without it): no sweep waits
         self.expect_odometry = expect_odometry
         self.grid = RollingBevGrid(BevSpec(params.size_px, params.resolution_m),
@@ -228,6 +236,7 @@ class LanePipeline:
             self._insert(stamp_ns, frame, xyz, intensity, pose)
             self.counters['clouds_extrapolated'] += 1
             let_in.append(stamp_ns)
+        self._hold_back(let_in)
         return let_in
 
     def is_waiting(self, stamp_ns: int) -> bool:
@@ -280,7 +289,14 @@ class LanePipeline:
             self.pending.popleft()
             self._insert(stamp_ns, frame, xyz, intensity, pose)
             inserted.append(stamp_ns)
+        self._hold_back(inserted)
         return inserted
+
+    def _hold_back(self, inserted: list[int]) -> None:
+        """Sweeps that went into the grid behind a newer one in the same call waited for
+        their odometry: note them for a window of their own (held_back)."""
+        if self.held_back is not None and self.output_frame == self.odom_frame:
+            self.held_back.extend(inserted[:-1])
 
     def _insert(self, stamp_ns: int, frame: str, xyz: np.ndarray, intensity: np.ndarray,
                 pose: np.ndarray | None) -> None:
@@ -303,14 +319,25 @@ class LanePipeline:
         self.sweeps_since_detection += 1
         self.counters['clouds'] += 1
 
-    def take_window(self) -> BevWindow | None:
-        """The current window, or None if no sweep arrived since the last one was taken.
+    def take_window(self, due_ns: int | None = None) -> BevWindow | None:
+        """The current window, or None if no sweep arrived since the last one was taken. A
+        sweep held back by its odometry (detect_held_back) and stamped at or after due_ns comes
+        first, as the window around it (the sweeps up to it).
 
         Cheap relative to the detector: the node calls it under its lock and runs
         detect_window outside, so incoming sweeps never wait for the model.
         """
         if self.sweeps_since_detection == 0:
             return None
+        while self.held_back:
+            stamp_ns = self.held_back.popleft()
+            if (due_ns is not None and stamp_ns < due_ns) or \
+                    stamp_ns >= self.grid.newest_stamp_ns:
+                continue  # not due (rate_hz), or the newest itself
+            window = self.grid.window(upto_ns=stamp_ns)
+            if window is not None and window.stamp_ns == stamp_ns:  # (still in the grid)
+                self.sweeps_since_detection -= 1
+                return window
         # sweeps that arrived since the last window but were never the newest one detected on
         self.counters['sweeps_skipped'] += self.sweeps_since_detection - 1
         self.sweeps_since_detection = 0

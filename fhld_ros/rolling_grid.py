@@ -180,15 +180,18 @@ class RollingBevGrid:
                 newest - self._sweeps[0].stamp_ns >= max(self.accumulate_ns, 1):
             self._sweeps.popleft()
 
-    def window(self) -> BevWindow | None:
-        """Raster of the window centred on the newest sensor pose (None when no sweep is held)."""
-        if not self._sweeps:
+    def window(self, upto_ns: int | None = None) -> BevWindow | None:
+        """Raster of the window centred on the newest sensor pose (None when no sweep is held);
+        with upto_ns, of the sweeps stamped up to it, centred on the newest of those."""
+        sweeps = [s for s in self._sweeps if s.stamp_ns <= upto_ns] if upto_ns is not None \
+            else self._sweeps
+        if not sweeps:
             return None
-        spec, newest = self.spec, self._sweeps[-1]
+        spec, newest = self.spec, sweeps[-1]
         window_to_output = yaw_frame(newest.pose)
         rot, origin = window_to_output[:3, :3], window_to_output[:3, 3]  # window axes in output
         sources = []
-        for sweep in self._sweeps:
+        for sweep in sweeps:
             offset = (sweep.pose[:3, 3] - origin) @ rot  # the sweep's sensor origin, window frame
             sources.append((sweep, window_affine(rot[0, 0], rot[1, 0], offset, spec)))
         self._acc.clear()

@@ -274,3 +274,34 @@ def test_a_sweep_in_a_gap_too_wide_waits_for_the_late_poses_that_fill_it():
     assert not pipeline.pending and pipeline.counters['clouds_without_odometry'] == 0
     pipeline.detect()
     np.testing.assert_allclose(pipeline.detector.windows[-1].window_to_output[:3, 3], [6, 0, 0])
+
+
+def test_sweeps_held_back_by_their_odometry_get_windows_of_their_own():
+    detector = FixedLanes([], [])
+    pipeline = LanePipeline(DetectorParams(size_px=64, resolution_m=0.5), detector,
+                            detect_held_back=True)
+    pipeline.add_odometry(_odom(0, np.eye(4)))
+    pipeline.add_cloud(_cloud(0))
+    assert pipeline.detect().stamp_ns == 0
+    for k in (1, 2, 3):  # their poses lost but the third's: it lets all three in at once
+        pipeline.add_cloud(_cloud(k * 100_000_000))
+    pipeline.add_odometry(_odom(300_000_000, euler_to_matrix(6.0, 0, 0, 0, 0, 0)))
+    # oldest first (the held back ones are at most HELD_BACK_MAX: here both), then the newest
+    stamps = [pipeline.detect().stamp_ns for _ in range(3)]
+    assert stamps == [100_000_000, 200_000_000, 300_000_000]
+    np.testing.assert_allclose(detector.windows[1].window_to_output[:3, 3], [2, 0, 0])
+    assert detector.windows[1].stamp_ns == 100_000_000
+    assert pipeline.detect() is None and pipeline.counters['sweeps_skipped'] == 0
+    # one that is not due by rate_hz (the caller's due_ns) is passed over, and counted
+    for k in (4, 5):
+        pipeline.add_cloud(_cloud(k * 100_000_000))
+    pipeline.add_odometry(_odom(500_000_000, euler_to_matrix(10.0, 0, 0, 0, 0, 0)))
+    assert pipeline.take_window(due_ns=450_000_000).stamp_ns == 500_000_000
+    assert pipeline.counters['sweeps_skipped'] == 1
+    # the offline pipeline (fhld replay) detects the newest, as always
+    offline = LanePipeline(DetectorParams(size_px=64, resolution_m=0.5), FixedLanes([], []))
+    offline.add_odometry(_odom(0, np.eye(4)))
+    for k in (1, 2):
+        offline.add_cloud(_cloud(k * 100_000_000))
+    offline.add_odometry(_odom(200_000_000, np.eye(4)))
+    assert offline.detect().stamp_ns == 200_000_000 and offline.detect() is None

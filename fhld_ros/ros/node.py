@@ -60,7 +60,8 @@ class LaneDetectorNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('lane_detector', **kwargs)
         self.params = declare_detector_params(self)
-        self.pipeline = LanePipeline(self.params, make_detector(self.params))
+        self.pipeline = LanePipeline(self.params, make_detector(self.params),
+                                     detect_held_back=True)
         # logged once they proved usable: a bad value gives one line on stderr, nothing else
         self.get_logger().info(f'parameters: {self.params}')
         self.lock = threading.Lock()  # the pipeline: cloud / odometry callbacks vs detection
@@ -271,7 +272,8 @@ class LaneDetectorNode(Node):
                 if newest is None or (last is not None and
                                       0 <= newest - last < self.min_interval_ns):
                     return False  # nothing new, or too soon after the last detected sweep
-                window = self.pipeline.take_window()
+                window = self.pipeline.take_window(
+                    None if last is None else last + self.min_interval_ns)
                 timed_out = self.pipeline.odometry_stopped  # (the first waited odom_wait_sec)
             if window is None:
                 return False
