@@ -2,6 +2,8 @@
 
     python test/graph_latency.py --sweeps 300 --odom-hz 10   # docs/performance.md, issue #17
     python test/graph_latency.py --sweeps 300 --odom-hz 50
+    python test/graph_latency.py --sweeps 300 --dds default   # Fast DDS's 512 kB segment
+    python test/graph_latency.py --dds default --publisher-args '--best-effort' --log node.txt
 
 Starts the node with its defaults (the shipped FHLD weights), runs the publisher in its own
 process (plain rclpy, 64 x 1024 Ouster-like sweeps stamped and published on the wall clock) and
