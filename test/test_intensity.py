@@ -10,10 +10,12 @@ import pytest
 from fhld_ros.intensity import (
     ABSOLUTE,
     CONTRAST,
+    CONTRAST_RINGS,
     GROUND_LEVEL,
     IntensityEncoder,
     ground_level,
     ground_mask,
+    ring_gains,
 )
 from fhld_ros.pipeline import LanePipeline
 from fhld_ros.ros.parameters import DetectorParams
@@ -186,3 +188,82 @@ def test_a_larger_share_changes_more_of_the_same_seeds_and_nothing_else(share, t
         build_cache(tmp_path, [], more, workers=1, progress=False)
     with pytest.raises(ValueError, match=share):
         dataclasses.replace(bare, **{share: 1.5}).validate()
+
+
+def _sim_sweep(sensor: str, sigma: float | None, seed: int = 2_000_777
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sensor-frame xyz, raw intensity and true ring of one simulated sweep (returns only)."""
+    pts = next(Simulator(seed, sweeps=1, sensor=sensor, laser_gain_sigma=sigma).sweeps()).points
+    field = 'intensity' if 'intensity' in pts.dtype.names else 'reflectivity'
+    xyz = np.stack([pts['x'], pts['y'], pts['z']], -1).reshape(-1, 3).astype(np.float32)
+    keep = np.abs(xyz).sum(axis=1) > 0  # organised layouts: zero no-returns
+    return xyz[keep], pts[field].reshape(-1)[keep].astype(np.float32), pts['ring'].reshape(-1)[
+        keep]
+
+
+@pytest.mark.parametrize('sensor', ['hdl64e', 'hdl32e', 'vlp16', 'os1-128', 'os2-128'])
+def test_rings_from_elevation_are_the_sensors_lasers(sensor):
+    xyz, raw, ring = _sim_sweep(sensor, None)
+    ground = ground_mask(xyz)
+    gains = ring_gains(xyz, xyz[ground], raw[ground])
+    assert gains is not None
+    seen = [k for k in np.unique(ring[ground]) if np.count_nonzero(ground & (ring == k)) >= 200]
+    assert len(seen) >= 6
+    # one gain per laser, and no two lasers share one (each its own ring); a ring left out
+    # (too few ground returns for its own level) keeps gain 1
+    per_ring = [np.unique(gains[ring == k]) for k in seen]
+    assert all(g.size == 1 for g in per_ring)
+    own = np.concatenate(per_ring)
+    assert np.count_nonzero(own == 1.0) <= 3
+    assert len(np.unique(own[own != 1.0])) == np.count_nonzero(own != 1.0)
+
+
+@pytest.mark.parametrize('sensor', ['hdl64e', 'hdl32e', 'os1-64'])
+def test_contrast_rings_takes_out_per_laser_gain(sensor):
+    xyz, calibrated, _ = _sim_sweep(sensor, 0.0)  # every laser at gain 1
+    _, spread, _ = _sim_sweep(sensor, 0.3)  # the same drive, gains log-normal sigma 0.3
+    ground = ground_mask(xyz) & (np.hypot(xyz[:, 0], xyz[:, 1]) < 12.8)
+    ref = IntensityEncoder(CONTRAST_RINGS)(xyz, calibrated)[ground]
+    # per ground return: |log| error of the encoding against the calibrated sweep
+    def error(encoding: str) -> float:
+        out = IntensityEncoder(encoding)(xyz, spread)[ground]
+        both = (out > 0) & (ref > 0)
+        return float(np.median(np.abs(np.log(out[both] / ref[both]))))
+    rings, sweep = error(CONTRAST_RINGS), error(CONTRAST)
+    assert rings < 0.12 and sweep > 1.5 * rings, (rings, sweep)
+
+
+def test_contrast_rings_falls_back_without_separable_rings():
+    xyz, value = road_scene(np.random.default_rng(3))  # points anywhere: no rings
+    encoder = IntensityEncoder(CONTRAST_RINGS)
+    np.testing.assert_allclose(encoder(xyz, value), IntensityEncoder(CONTRAST)(xyz, value))
+    assert not encoder.rings_found
+    ground = ground_mask(xyz)
+    assert ring_gains(xyz, xyz[ground], value[ground]) is None
+    # a simulated sweep accumulated while driving: each laser smeared over degrees
+    sim = Simulator(2_000_778, sweeps=5, sensor='hdl32e')
+    clouds = [s.points for s in sim.sweeps()]
+    poses = sim.true_poses
+    newest = np.linalg.inv(poses[-1])
+    parts = []
+    for pts, pose in zip(clouds, poses):
+        local = np.stack([pts['x'], pts['y'], pts['z'], np.ones(len(pts))], -1)
+        parts.append((local @ (newest @ pose).T)[:, :3])
+    xyz = np.concatenate(parts).astype(np.float32)
+    raw = np.concatenate([p['intensity'] for p in clouds]).astype(np.float32)
+    ground = ground_mask(xyz)
+    gains = ring_gains(xyz, xyz[ground], raw[ground])
+    assert gains is None or np.all(gains == 1.0)
+
+
+def test_laser_gain_spread_is_off_by_default_and_leaves_the_drive():
+    base = Simulator(2_000_779, sweeps=1, sensor='hdl64e')
+    spread = Simulator(2_000_779, sweeps=1, sensor='hdl64e', laser_gain_sigma=0.3)
+    assert base.gains.std() < 0.2 and 0.15 < np.log(spread.gains).std() < 0.45
+    a, b = next(base.sweeps()).points, next(spread.sweeps()).points
+    np.testing.assert_array_equal(a['x'], b['x'])  # the same drive, only the gains differ
+    laser = CacheSettings(sensor_variation=True, laser_gains=True)
+    drawn = [scenario_for_seed(seed, laser)['laser_gain_sigma'] for seed in range(100)]
+    assert 0.3 < np.mean([d is not None for d in drawn]) < 0.7
+    assert 'laser_gain_sigma' not in scenario_for_seed(TEST_SEED_BASE, laser)
+    assert 'laser_gain_sigma' not in scenario_for_seed(0, CacheSettings(sensor_variation=True))

@@ -91,6 +91,9 @@ class SimConfig:
     asphalt_rho: float | None = None  # scene.RoadLook: pavement brightness (KITTI-like ~0.25)
     gutter_ratio: float | None = None  # a strip along the paved edges, x the pavement
     seams: bool = False  # dark sealed cracks and joints
+    # uncalibrated lasers: each laser's intensity gain log-normal with this sigma, drawn per
+    # drive from its own stream (None: the preset's small spread, gain_sigma)
+    laser_gain_sigma: float | None = None
 
     def validate(self) -> None:
         def bad(msg: str) -> None:
@@ -124,6 +127,8 @@ class SimConfig:
             bad(f'asphalt_rho must be within 0.02..0.6, got {self.asphalt_rho:g}')
         if self.gutter_ratio is not None and not 0.3 <= self.gutter_ratio <= 4.0:
             bad(f'gutter_ratio must be within 0.3..4, got {self.gutter_ratio:g}')
+        if self.laser_gain_sigma is not None and not 0.0 <= self.laser_gain_sigma <= 1.0:
+            bad(f'laser_gain_sigma must be within 0..1, got {self.laser_gain_sigma:g}')
 
 
 @dataclass
@@ -241,6 +246,9 @@ class Simulator:
         self.elevation = elev
         self.local_dirs, self.azimuth = local_directions(elev, self.columns)
         self.gains = np.clip(r_lidar.normal(1.0, self.preset.gain_sigma, elev.size), 0.6, 1.4)
+        if config.laser_gain_sigma is not None:  # drawn after, so r_lidar's stream stays put
+            r_gain = np.random.default_rng(np.random.SeedSequence([self.seed, 0x6A15]))
+            self.gains = np.exp(r_gain.normal(0.0, config.laser_gain_sigma, elev.size))
         self_rays = RayBundle(np.zeros((self.columns, 3)), self.local_dirs, elev, self.azimuth,
                               0.0, 10.0)
         caster = ObstacleCaster(self_rays, tilt_margin=0.0)

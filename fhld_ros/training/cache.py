@@ -73,6 +73,7 @@ class CacheSettings:
     sensor_variation: bool = False  # training seeds only: sensor_variation() drawn per seed
     road_look: bool = False  # sensor_variation also draws pavements and mount tilt
     bare_curbs: bool = False  # sensor_variation also draws roads without lines along the curbs
+    laser_gains: bool = False  # sensor_variation also draws per-laser gain spread (variation.py)
     # sensor_variation's shares of the seeds (variation.py): roads without any paint, windows of
     # one sweep without odometry, KITTI-like bright pavement (with road_look)
     no_markings_share: float = SHARES['no_markings_share']
@@ -230,7 +231,8 @@ def _check_index(out_dir: Path, settings: CacheSettings) -> None:
     """cache.json must match the requested settings (written on the first build)."""
     index = out_dir / INDEX_NAME
     wanted = {'format': SHARD_FORMAT, 'settings': to_plain(settings)}
-    for option in ('road_look', 'bare_curbs'):  # caches from before the option stay valid
+    # caches from before an option stay valid
+    for option in ('road_look', 'bare_curbs', 'laser_gains'):
         if not getattr(settings, option):
             del wanted['settings'][option]
     for name in SHARES:  # recorded under 'variation'

@@ -58,6 +58,7 @@ class DataSection:
     sensor_variation: bool = False
     road_look: bool = False  # with sensor_variation: pavements (KITTI-like, gutters, seams), tilt
     bare_curbs: bool = False  # with sensor_variation: half the roads without lines at the curbs
+    laser_gains: bool = False  # with sensor_variation: half the drives with per-laser gain spread
     # with sensor_variation, shares of the training seeds (training/variation.py): roads
     # without paint, single sweeps without odometry, KITTI-like bright pavement (road_look)
     no_markings_share: float = SHARES['no_markings_share']
@@ -203,5 +204,5 @@ def cache_settings(cfg: TrainConfig, split: str) -> CacheSettings:
         odom_noise_max=d.odom_noise_max, motion_distortion_prob=d.motion_distortion_prob,
         intensity_encoding=model.intensity_encoding,
         sensor_variation=d.sensor_variation and train, road_look=d.road_look and train,
-        bare_curbs=d.bare_curbs and train,
+        bare_curbs=d.bare_curbs and train, laser_gains=d.laser_gains and train,
         **{name: getattr(d, name) if train else default for name, default in SHARES.items()})

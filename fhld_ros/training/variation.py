@@ -27,6 +27,10 @@ ROAD_LOOK_SHARE = 0.35  # each of bright pavement, gutters and seams on this sha
 # with every simulated marked road painting a line just inside its curbs, the model learnt
 # "curb => lane line" and drew lanes along bare real curbs (docs/training.md)
 BARE_CURB_SHARE = 0.5
+# uncalibrated multi-laser sensors (per-laser gain, whole bright rings): with laser_gains, this
+# share of the seeds draws each laser's gain log-normal with a sigma in LASER_GAIN_SIGMA_RANGE
+LASER_GAIN_SHARE = 0.5
+LASER_GAIN_SIGMA_RANGE = (0.15, 0.3)
 # CacheSettings fields that set a share of the seeds, and their defaults
 SHARES = {'no_markings_share': NO_MARKINGS_SHARE, 'single_sweep_share': SINGLE_SWEEP_SHARE,
           'bright_asphalt_share': ROAD_LOOK_SHARE}
@@ -48,6 +52,8 @@ def sensor_variation(seed: int, settings: CacheSettings) -> dict:
       ROAD_LOOK_SHARE; half the seeds: the sensor tilted up to MOUNT_TILT_DEG in pitch and roll
     * with bare_curbs, BARE_CURB_SHARE of the seeds: no edge lines (the lanes run to the curb;
       its own stream of draws, so the draws above stay put)
+    * with laser_gains, LASER_GAIN_SHARE of the seeds: per-laser gains log-normal with a sigma
+      in LASER_GAIN_SIGMA_RANGE (its own stream too)
     """
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x5E75]))
     worn = rng.random() < 0.6
@@ -60,7 +66,8 @@ def sensor_variation(seed: int, settings: CacheSettings) -> dict:
             'intensity_gain': round(gain, 3), 'mount_z': mount,
             'single_sweep': bool(rng.random() < settings.single_sweep_share),
             **(_road_look(rng, settings) if settings.road_look else {}),
-            **(_bare_curbs(seed) if settings.bare_curbs else {})}
+            **(_bare_curbs(seed) if settings.bare_curbs else {}),
+            **(_laser_gains(seed) if settings.laser_gains else {})}
 
 
 def variation_record(settings: CacheSettings) -> dict:
@@ -79,6 +86,9 @@ def variation_record(settings: CacheSettings) -> dict:
             record['bright_asphalt_share'] = settings.bright_asphalt_share
     if settings.bare_curbs:
         record['bare_curb_share'] = BARE_CURB_SHARE
+    if settings.laser_gains:
+        record.update(laser_gain_share=LASER_GAIN_SHARE,
+                      laser_gain_sigma_range=list(LASER_GAIN_SIGMA_RANGE))
     return record
 
 
@@ -102,3 +112,9 @@ def _road_look(rng: np.random.Generator, settings: CacheSettings) -> dict:
 def _bare_curbs(seed: int) -> dict:
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0xC0B5]))
     return {'edge_lines': bool(rng.random() >= BARE_CURB_SHARE)}
+
+
+def _laser_gains(seed: int) -> dict:
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 0x6A15]))
+    sigma = rng.uniform(*LASER_GAIN_SIGMA_RANGE) if rng.random() < LASER_GAIN_SHARE else None
+    return {'laser_gain_sigma': None if sigma is None else round(float(sigma), 3)}
