@@ -215,10 +215,33 @@ def _per_return(gain: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     edges = np.concatenate([[lo[0] - gaps[0] / 2], (lo[1:] + hi[:-1]) / 2,
                             [hi[-1] + gaps[-1] / 2]])  # >= RING_MIN_RINGS rings here
     # tan(elevation) of every return against tan(edges): no arctan over the whole sweep
-    xyz = np.asarray(xyz_sensor, dtype=np.float32).reshape(-1, 3)
-    with np.errstate(divide='ignore', invalid='ignore'):
-        t = xyz[:, 2] / np.hypot(xyz[:, 0], xyz[:, 1])
-    return gain[np.searchsorted(np.tan(np.radians(edges)).astype(np.float32), t, 'right')]
+    x, y, z = np.asarray(xyz_sensor, dtype=np.float32).reshape(-1, 3).T
+    return _gain_per_return(x, y, z, np.tan(np.radians(edges)).astype(np.float32),
+                            np.asarray(gain, dtype=np.float32))
+
+
+@compiled
+def _gain_per_return(x: np.ndarray, y: np.ndarray, z: np.ndarray, tan_edges: np.ndarray,
+                     gain: np.ndarray) -> np.ndarray:
+    """gain[k] for each return, k its ring: tan(elevation) searched among tan_edges (numpy's
+    searchsorted 'right'; a return on the sensor's axis, or NaN, is above every ring)."""
+    out = np.empty(x.shape[0], dtype=np.float32)
+    edges = tan_edges.shape[0]
+    for i in range(x.shape[0]):
+        h = np.float32(np.sqrt(np.float32(x[i] * x[i]) + np.float32(y[i] * y[i])))
+        if h == 0 or not np.isfinite(z[i] / h):
+            out[i] = gain[edges] if not z[i] < 0 else gain[0]
+            continue
+        t = np.float32(z[i] / h)
+        lo, hi = 0, edges
+        while lo < hi:  # first edge above t
+            mid = (lo + hi) // 2
+            if tan_edges[mid] <= t:
+                lo = mid + 1
+            else:
+                hi = mid
+        out[i] = gain[lo]
+    return out
 
 
 class IntensityEncoder:
