@@ -269,14 +269,15 @@ class IntensityEncoder:
         xyz = np.asarray(xyz_sensor).reshape(-1, 3)
         sample = xyz[::step]
         ground = ground_mask(sample)
-        level = ground_level(raw[::step][ground])
+        ground_values = raw[::step][ground]
+        level = ground_level(ground_values)
         gains = None
         if level is None:
             level = self.level if self.level is not None else ground_level(raw)
         else:
             self.level = level
             if self.encoding == CONTRAST_RINGS:
-                gains = ring_gains(xyz, sample[ground], raw[::step][ground])
+                gains = ring_gains(xyz, sample[ground], ground_values)
         self.rings_found = gains is not None
         if level is None:  # no intensity at all: nothing stands out
             return np.zeros(raw.shape[0], dtype=np.float32)

@@ -19,7 +19,9 @@ ODOM_MAX_GAP_NS = 1_000_000_000
 # Extrapolation continues the motion between the newest pose and one at least this much older
 # (two poses 5 ms apart at 200 Hz would scale their jitter 20-fold over 100 ms)
 EXTRAPOLATION_BASE_NS = 50_000_000
-TIME_BACK_NS = 1_000_000_000  # a stamp this far behind the newest: time went back (bag loop)
+# a stamp this far behind the oldest pose kept (the pipeline: the newest stamp seen): time went
+# back (bag loop)
+TIME_BACK_NS = 1_000_000_000
 
 
 class PoseBuffer:

@@ -204,8 +204,8 @@ def _transport_keys(dds: str, summary: dict[str, float]) -> dict[str, float]:
 
 def _run_child(seconds: float, dds: str) -> dict[str, float]:
     """_measure(seconds, dds) in a child process with that transport's DDS profile."""
-    env = loopback_dds_env(dds=dds)  # loopback only, a fresh random domain
-    env['FHLD_BENCH_E2E_PARAMS'] = ' '.join(PARAMS)
+    # (the child confines itself to loopback on a fresh domain: _measure)
+    env = dict(os.environ, FHLD_BENCH_E2E_PARAMS=' '.join(PARAMS))
     # its own session: on a timeout the child and the node it started go together
     child = subprocess.Popen(
         [sys.executable, '-m', 'fhld_ros.commands.bench_e2e', '--dds', dds,

@@ -82,6 +82,11 @@ class WindowSummary:
     latency_p95_ms: float | None = None
     since_cloud: float | None = None  # seconds since the newest cloud; None before the first
 
+    @property
+    def dropped(self) -> int:
+        """Clouds that never gave lanes of their own: bad, overtaken or lost by DDS."""
+        return self.bad_clouds + self.overtaken + self.lost
+
 
 def _tripped(value: float, warn: float, error: float) -> tuple[bytes, float] | None:
     """(ERROR, error) when value is above error, (WARN, warn) above warn, else None."""
@@ -99,7 +104,7 @@ def assess(window: WindowSummary, odometry_stopped: bool = False,
     elif tripped := _tripped(window.since_cloud, th.stale_warn_sec, th.stale_error_sec):
         found.append((tripped[0], f'input stale: no clouds for {window.since_cloud:.1f} s '
                                   f'(> {tripped[1]:g} s)'))
-    dropped = window.bad_clouds + window.overtaken + window.lost
+    dropped = window.dropped
     sent = window.clouds + window.lost
     rate = dropped / max(sent, dropped, 1)
     if tripped := _tripped(rate, th.drop_rate_warn, th.drop_rate_error):
@@ -231,7 +236,7 @@ class NodeStats:
         values['cloud_rate_hz'] = f'{window.clouds / window.seconds:.2f}'
         values['detection_rate_hz'] = f'{window.detections / window.seconds:.2f}'
         values['window_sec'] = f'{window.seconds:.1f}'
-        values['window_clouds_dropped'] = str(window.bad_clouds + window.overtaken + window.lost)
+        values['window_clouds_dropped'] = str(window.dropped)
         if window.latency_p95_ms is not None:
             values['window_latency_ms_p95'] = f'{window.latency_p95_ms:.1f}'
         if window.since_cloud is not None:

@@ -7,9 +7,9 @@ from pathlib import Path
 
 # Both keep DDS on 127.0.0.1. 'project': 32 MB shared-memory segments, a whole cloud in one
 # message (the lower latency). 'default': Fast DDS's own segment size and rmw's own reader and
-# writer settings, as in a user's graph nobody tuned: large clouds go as UDP fragments.
+# writer settings, as in a user's graph nobody tuned: a large cloud goes through the
+# publisher's segment in 64 kB fragments, overrunning it (docs/design.md §7).
 PROFILES = {'project': 'fastdds_loopback.xml', 'default': 'fastdds_loopback_default_segment.xml'}
-PROFILE_NAME = PROFILES['project']
 
 
 def loopback_profile(dds: str = 'project') -> Path:

@@ -202,9 +202,7 @@ class LaneDetectorNode(Node):
         self.silence.heard()
         try:
             with self.lock:
-                newest = self.pipeline.grid.newest_stamp_ns
                 let_in = self.pipeline.add_odometry(msg)
-                inserted = self.pipeline.grid.newest_stamp_ns != newest
                 self.late_sweeps.odometry_in(stamp_to_ns(msg.header.stamp), let_in,
                                              time.monotonic())
         except Exception as exc:  # a bad message never takes the node down
@@ -212,7 +210,7 @@ class LaneDetectorNode(Node):
             return
         if self.said_odometry_stopped:
             self._report_odometry()
-        if inserted:
+        if let_in:
             # A sweep that came before the odometry of its stamp went in just now; without this
             # wake-up it waited for the next poll (measured: +31 ms on 1 sweep in 6).
             self.wake_detection.trigger()
