@@ -20,8 +20,8 @@ from fhld_ros.model.config import FhldConfig
 from fhld_ros.model.detector import Detections, FhldDetector
 from fhld_ros.model.heights import refine_lane_heights
 from fhld_ros.model.inference import serving_features
+from fhld_ros.parameters import DetectorParams
 from fhld_ros.rolling_grid import BevWindow
-from fhld_ros.ros.parameters import DetectorParams
 
 Detector = Callable[[BevWindow], tuple[list[np.ndarray], np.ndarray]]
 T = TypeVar('T')

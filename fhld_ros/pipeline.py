@@ -31,9 +31,9 @@ from scipy.optimize import linear_sum_assignment
 
 from fhld_ros.bev import BevSpec
 from fhld_ros.intensity import ABSOLUTE
+from fhld_ros.parameters import DetectorParams
 from fhld_ros.pose_buffer import TIME_BACK_NS, PoseBuffer
 from fhld_ros.rolling_grid import BevWindow, RollingBevGrid
-from fhld_ros.ros.parameters import DetectorParams
 from msg_adapters.family import stamp_to_ns
 from msg_adapters.odometry import euler_to_matrix, odometry_to_matrix
 from msg_adapters.pointcloud2 import read_xyzi

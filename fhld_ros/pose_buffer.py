@@ -3,11 +3,10 @@ extrapolated) at the stamps of the sweeps. The pipeline keeps one for the odomet
 from __future__ import annotations
 
 import bisect
-from collections.abc import Sequence
 
 import numpy as np
 
-from msg_adapters.odometry import extrapolate_pose, interpolate_pose
+from fhld_ros.geometry import extrapolate_pose, pose_at
 
 ODOM_HISTORY = 4000  # poses kept at most (20 s at 200 Hz) ...
 ODOM_HISTORY_NS = 5_000_000_000  # ... and no older than this behind the newest
@@ -79,19 +78,3 @@ class PoseBuffer:
             return None
         return extrapolate_pose(stamp_ns, self.stamps[base], self.poses[base],
                                 self.stamps[last], self.poses[last])
-
-
-def pose_at(stamps: Sequence[int], poses: Sequence[np.ndarray], stamp_ns: int,
-            max_gap_ns: int | None) -> np.ndarray | None:
-    """The pose at stamp_ns from sorted stamped poses: the one at exactly that stamp, else
-    interpolated between the two around it (None outside them, or when they lie more than
-    max_gap_ns apart)."""
-    index = bisect.bisect_left(stamps, stamp_ns)
-    if index < len(stamps) and stamps[index] == stamp_ns:
-        return poses[index]
-    if index == 0 or index == len(stamps):
-        return None
-    t0, t1 = int(stamps[index - 1]), int(stamps[index])
-    if max_gap_ns is not None and t1 - t0 > max_gap_ns:
-        return None
-    return interpolate_pose(stamp_ns, t0, poses[index - 1], t1, poses[index])

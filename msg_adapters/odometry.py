@@ -1,4 +1,4 @@
-"""nav_msgs/Odometry and geometry_msgs/Pose <-> 4x4 homogeneous matrices, and interpolation."""
+"""nav_msgs/Odometry and geometry_msgs/Pose <-> 4x4 homogeneous matrices."""
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -123,58 +123,3 @@ def make_odometry(family: MessageFamily, header: Any, child_frame_id: str, trans
         pose=family.new('geometry_msgs/msg/PoseWithCovariance',
                         pose=matrix_to_pose(family, transform)),
         twist=family.new('geometry_msgs/msg/TwistWithCovariance', twist=twist))
-
-
-def slerp(q0: np.ndarray, q1: np.ndarray, fraction: float) -> np.ndarray:
-    """Shortest-arc spherical interpolation of unit quaternions (x, y, z, w)."""
-    q0 = np.asarray(q0, dtype=np.float64)
-    q1 = np.asarray(q1, dtype=np.float64)
-    dot = float(np.dot(q0, q1))
-    if dot < 0.0:
-        q1, dot = -q1, -dot
-    if dot > 0.9995:  # nearly parallel: lerp is exact enough and avoids 0/0
-        q = q0 + fraction * (q1 - q0)
-        return q / np.linalg.norm(q)
-    theta = np.arccos(dot)
-    return (np.sin((1 - fraction) * theta) * q0 + np.sin(fraction * theta) * q1) / np.sin(theta)
-
-
-def interpolate_pose(t: float, t0: float, pose0: np.ndarray, t1: float,
-                     pose1: np.ndarray) -> np.ndarray:
-    """Pose at time t between two stamped 4x4 poses (linear translation, slerp rotation).
-
-    Outside [t0, t1] the fraction is clamped: a small extrapolation is safer as a hold.
-    """
-    fraction = 0.0 if t1 == t0 else float(np.clip((t - t0) / (t1 - t0), 0.0, 1.0))
-    transform = np.eye(4)
-    q = slerp(matrix_to_quaternion(pose0[:3, :3]), matrix_to_quaternion(pose1[:3, :3]), fraction)
-    transform[:3, :3] = quaternion_to_matrix(q)
-    transform[:3, 3] = (1 - fraction) * pose0[:3, 3] + fraction * pose1[:3, 3]
-    return transform
-
-
-def _left_jacobian(rotvec: np.ndarray) -> np.ndarray:
-    """SO(3)'s left Jacobian V: exp of a twist (rotvec, u) moves by V u."""
-    theta = float(np.linalg.norm(rotvec))
-    k = np.array([[0, -rotvec[2], rotvec[1]], [rotvec[2], 0, -rotvec[0]],
-                  [-rotvec[1], rotvec[0], 0]])
-    if theta < 1e-9:
-        return np.eye(3) + 0.5 * k
-    return (np.eye(3) + (1 - np.cos(theta)) / theta ** 2 * k
-            + (theta - np.sin(theta)) / theta ** 3 * k @ k)
-
-
-def extrapolate_pose(t: float, t0: float, pose0: np.ndarray, t1: float,
-                     pose1: np.ndarray) -> np.ndarray:
-    """Pose at time t >= t1, continuing the motion from pose0 (t0) to pose1 (t1 > t0) at the
-    same body-frame twist: exact for constant speed and turn rate (a screw motion)."""
-    from scipy.spatial.transform import Rotation
-
-    step = np.linalg.solve(pose0, pose1)  # pose0^-1 pose1: the motion in pose0's frame
-    rotvec = Rotation.from_matrix(step[:3, :3]).as_rotvec()
-    u = np.linalg.solve(_left_jacobian(rotvec), step[:3, 3])
-    k = (t - t1) / (t1 - t0)
-    ahead = np.eye(4)
-    ahead[:3, :3] = Rotation.from_rotvec(rotvec * k).as_matrix()
-    ahead[:3, 3] = _left_jacobian(rotvec * k) @ (u * k)
-    return pose1 @ ahead

@@ -7,17 +7,17 @@ import json
 import numpy as np
 import pytest
 
-from fhld_ros.annotation.calibration import CameraCalibration
 from fhld_ros.annotation.ground import segment_ground
-from fhld_ros.annotation.labels2d import (
+from fhld_ros.annotation.lane_regions import lane_members
+from fhld_ros.annotation.recovery import recover_lane
+from fhld_ros.camera.calibration import CameraCalibration
+from fhld_ros.camera.labels2d import (
     ImageLabels,
     LaneLabel2D,
     read_label_dir,
     read_labels,
     write_labels,
 )
-from fhld_ros.annotation.lane_regions import lane_members
-from fhld_ros.annotation.recovery import recover_lane
 from fhld_ros.errors import ConfigError
 
 # camera 1.5 m above a flat road, looking along +x of the cloud frame (optical z = cloud x)

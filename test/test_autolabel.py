@@ -13,16 +13,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fhld_ros.annotation.calibration import CameraCalibration
-from fhld_ros.annotation.labels2d import read_label_dir, write_labels
 from fhld_ros.bagio import read_messages
+from fhld_ros.camera.calibration import CameraCalibration
+from fhld_ros.camera.labels2d import read_label_dir, write_labels
 from fhld_ros.cli import main
+from fhld_ros.data.bag_source import LabelledBag, bag_samples
+from fhld_ros.data.cache import CacheSettings
 from fhld_ros.evaluation.autolabel_drives import perturb_labels, score_lane_map
 from fhld_ros.evaluation.evaluate import evaluate_bags, summary
 from fhld_ros.sim.camera import SimCamera
 from fhld_ros.sim.simulator import Simulator
-from fhld_ros.training.bag_source import LabelledBag, bag_samples
-from fhld_ros.training.cache import CacheSettings
 from msg_adapters.lanes import marker_array_to_lanes
 
 pytestmark = pytest.mark.slow

@@ -12,7 +12,7 @@ import pytest
 from fhld_ros.bagio import read_messages
 from fhld_ros.cli import main
 from fhld_ros.evaluation import real_scans
-from fhld_ros.evaluation.metrics import resample_polyline
+from fhld_ros.geometry import resample_polyline
 from msg_adapters.lanes import marker_array_to_lanes
 
 PAIR = real_scans.DEFAULT_DIR / 'pjlab_camera_lidar_pair'

@@ -8,7 +8,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from fhld_ros.classical import ClassicalConfig, ClassicalLaneDetector, otsu_threshold
-from fhld_ros.evaluation.metrics import point_counts, resample_polyline
+from fhld_ros.evaluation.metrics import SAMPLE_STEP, point_counts
+from fhld_ros.geometry import resample_polyline
 
 HALF = 12.8
 
@@ -54,8 +55,8 @@ def match(lanes: list[np.ndarray]) -> dict[str, tuple[float, float]]:
     """GT name -> (mean, max) distance of the detected lane closest to it."""
     out = {}
     for name, gt in gt_lanes().items():
-        tree = cKDTree(resample_polyline(gt))
-        dists = [tree.query(resample_polyline(lane))[0] for lane in lanes]
+        tree = cKDTree(resample_polyline(gt, SAMPLE_STEP))
+        dists = [tree.query(resample_polyline(lane, SAMPLE_STEP))[0] for lane in lanes]
         best = min(dists, key=np.mean)
         out[name] = (float(best.mean()), float(best.max()))
     return out

@@ -15,7 +15,7 @@ from fhld_ros.commands import import_scans
 from fhld_ros.commands.replay import replay
 from fhld_ros.errors import CliError
 from fhld_ros.importing.pcd import XYZI_DTYPE, lzf_decompress, read_pcd
-from fhld_ros.ros.parameters import DetectorParams
+from fhld_ros.parameters import DetectorParams
 from fhld_ros.sim.simulator import Simulator
 from msg_adapters.family import stamp_to_ns
 from msg_adapters.odometry import euler_to_matrix, odometry_to_matrix

@@ -7,6 +7,8 @@ import dataclasses
 import numpy as np
 import pytest
 
+from fhld_ros.data.cache import TEST_SEED_BASE, CacheSettings, build_cache, scenario_for_seed
+from fhld_ros.data.samples import training_samples
 from fhld_ros.intensity import (
     ABSOLUTE,
     CONTRAST,
@@ -17,11 +19,9 @@ from fhld_ros.intensity import (
     ground_mask,
     ring_gains,
 )
+from fhld_ros.parameters import DetectorParams
 from fhld_ros.pipeline import LanePipeline
-from fhld_ros.ros.parameters import DetectorParams
 from fhld_ros.sim.simulator import Simulator
-from fhld_ros.training.cache import TEST_SEED_BASE, CacheSettings, build_cache, scenario_for_seed
-from fhld_ros.training.samples import training_samples
 
 
 def road_scene(rng: np.random.Generator, mount_z: float = 1.9, pitch_deg: float = 0.0

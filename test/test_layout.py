@@ -1,7 +1,8 @@
-"""The package layout keeps its shape: no import cycles, msg_adapters a leaf, short modules.
+"""The package layout keeps its shape: layers that import downwards only, no import cycles,
+short modules.
 
-Imports are read from the source (module level and inside functions alike, except under
-TYPE_CHECKING), so a cycle hidden in a function-level import is caught too.
+Imports are read from the source (module level, inside functions and under TYPE_CHECKING
+alike), so a cycle hidden in a function-level or type-only import is caught too.
 """
 from __future__ import annotations
 
@@ -12,6 +13,20 @@ REPO = Path(__file__).resolve().parent.parent
 PACKAGES = ('fhld_ros', 'msg_adapters')
 MAX_MODULE_LINES = 400
 MAX_FUNCTION_LINES = 80
+# The allowed directions: a module imports from its own layer's package or from a layer below.
+# core: fhld_ros's top-level modules (pipeline, grid, detectors, parameters, geometry, ...) with
+# model/ and importing/. Packages sharing a layer (sim, annotation) do not import each other.
+LAYERS = (
+    ('msg_adapters',),  # messages <-> numpy, no fhld_ros
+    ('core',),
+    ('camera',),  # calibration, 2D labels, camera topics
+    ('sim', 'annotation'),
+    ('data',),  # windows with lanes: simulated, cached, from bags
+    ('evaluation',),
+    ('training',),
+    ('ros',),  # the node and its plumbing
+    ('commands',),  # `fhld ...`
+)
 
 
 def _modules() -> dict[str, Path]:
@@ -23,21 +38,12 @@ def _modules() -> dict[str, Path]:
     return found
 
 
-def _is_type_checking(node: ast.If) -> bool:
-    test = node.test
-    return (isinstance(test, ast.Name) and test.id == 'TYPE_CHECKING') or (
-        isinstance(test, ast.Attribute) and test.attr == 'TYPE_CHECKING')
-
-
 def _imported(tree: ast.AST, known: dict[str, Path]) -> set[str]:
     """Project modules a module imports; `from a import b` counts a.b when b is a module."""
     out: set[str] = set()
     stack = [tree]
     while stack:
         node = stack.pop()
-        if isinstance(node, ast.If) and _is_type_checking(node):
-            stack.extend(node.orelse)
-            continue
         if isinstance(node, ast.Import):
             out.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
@@ -106,6 +112,38 @@ def test_no_import_cycles():
 
 def test_cycle_finder_finds_a_cycle():
     assert _cycles({'a': {'b'}, 'b': {'c'}, 'c': {'a'}, 'd': {'a'}}) == [['a', 'b', 'c']]
+
+
+def _group(module: str) -> str:
+    parts = module.split('.')
+    if parts[0] == 'msg_adapters':
+        return 'msg_adapters'
+    packages = {name for layer in LAYERS for name in layer}
+    return parts[1] if len(parts) > 1 and parts[1] in packages else 'core'
+
+
+def _upward_imports(graph: dict[str, set[str]]) -> list[str]:
+    layer_of = {name: depth for depth, layer in enumerate(LAYERS) for name in layer}
+    found = []
+    for module, edges in sorted(graph.items()):
+        for target in sorted(edges):
+            a, b = _group(module), _group(target)
+            if a != b and layer_of[b] >= layer_of[a]:
+                found.append(f'{module} ({a}) -> {target} ({b})')
+    return found
+
+
+def test_layers_import_downwards():
+    assert _upward_imports(_import_graph()) == []
+
+
+def test_layer_check_finds_an_upward_import():
+    graph = {'fhld_ros.pipeline': {'fhld_ros.ros.node'},
+             'fhld_ros.sim.x': {'fhld_ros.annotation.y'},
+             'fhld_ros.ros.node': {'fhld_ros.pipeline'}}
+    assert _upward_imports(graph) == [
+        'fhld_ros.pipeline (core) -> fhld_ros.ros.node (ros)',
+        'fhld_ros.sim.x (sim) -> fhld_ros.annotation.y (annotation)']
 
 
 def test_msg_adapters_import_nothing_from_fhld_ros():

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from fhld_ros.evaluation import metrics as m
+from fhld_ros.geometry import resample_polyline
 
 HALF = 12.8
 
@@ -32,13 +33,13 @@ def shifted(lanes: list[np.ndarray], d: tuple[float, float, float]) -> list[np.n
 
 def test_resample_spacing_and_ends() -> None:
     lane = curved(0.0)
-    dense = m.resample_polyline(lane)
+    dense = resample_polyline(lane, m.SAMPLE_STEP)
     steps = np.linalg.norm(np.diff(dense, axis=0), axis=1)
     assert steps.max() <= m.SAMPLE_STEP + 1e-12
     np.testing.assert_allclose(dense[[0, -1]], lane[[0, -1]])
-    assert len(m.resample_polyline(lane[:1])) == 1
+    assert len(resample_polyline(lane[:1], m.SAMPLE_STEP)) == 1
     # duplicate vertices do not break the arc-length interpolation
-    assert np.isfinite(m.resample_polyline(np.repeat(lane, 2, axis=0))).all()
+    assert np.isfinite(resample_polyline(np.repeat(lane, 2, axis=0), m.SAMPLE_STEP)).all()
 
 
 def test_identical_lanes_score_100() -> None:
@@ -65,7 +66,7 @@ def test_distances_are_3d() -> None:
 
 def test_missing_lane_lowers_recall_by_its_share_of_points() -> None:
     gt = [straight(-5.25), straight(-1.75, x0=-4.0), straight(1.75, x1=3.0), curved(4.5)]
-    sizes = [len(m.resample_polyline(lane)) for lane in gt]
+    sizes = [len(resample_polyline(lane, m.SAMPLE_STEP)) for lane in gt]
     for missing in range(len(gt)):
         pred = gt[:missing] + gt[missing + 1:]
         s = m.point_counts(pred, gt).scores()
@@ -78,7 +79,7 @@ def test_missing_lane_lowers_recall_by_its_share_of_points() -> None:
 def test_counts_sum_over_frames() -> None:
     short, long = straight(0.0, -1.0, 1.0), straight(0.0)
     total = m.point_counts([short], [short]) + m.point_counts([], [long])
-    n_short, n_long = (len(m.resample_polyline(x)) for x in (short, long))
+    n_short, n_long = (len(resample_polyline(x, m.SAMPLE_STEP)) for x in (short, long))
     assert total.n_gt == n_short + n_long
     # summed counts, not the mean of per-frame recalls (which would be 50)
     assert total.scores()['R@10'] == pytest.approx(100.0 * n_short / (n_short + n_long))
@@ -198,7 +199,7 @@ def test_official_image_size_thickness_and_forward_cut() -> None:
 def test_official_no_interpolation() -> None:
     sparse = np.array([[0.0, 0.0, -1.8], [20.0, 0.0, -1.8]])  # one vertex left below 10 m
     assert not m.official_mask(m.window_to_camera(sparse)).any()
-    dense = m.resample_polyline(sparse, 1.0)
+    dense = resample_polyline(sparse, 1.0)
     assert m.official_mask(m.window_to_camera(dense)).any()
 
 

@@ -8,6 +8,7 @@ import torch.nn.functional as F
 from model_fixtures import small_config
 
 from fhld_ros.bev import BevSpec
+from fhld_ros.geometry import resample_to_count
 from fhld_ros.model.anchors import inference_anchors, training_anchors
 from fhld_ros.model.cell_targets import cell_targets
 from fhld_ros.model.config import FhldConfig
@@ -16,8 +17,8 @@ from fhld_ros.model.detector import Detections, FhldDetector, with_segment_ends
 from fhld_ros.model.inference import OnnxFeatures, TracedFeatures, serving_features
 from fhld_ros.model.local_branch import LocalPrediction
 from fhld_ros.model.roi_align import roi_align
-from fhld_ros.model.targets import prepare_targets, resample_polyline, to_metres, to_normalised
-from fhld_ros.ros.parameters import DetectorParams
+from fhld_ros.model.targets import prepare_targets, to_metres, to_normalised
+from fhld_ros.parameters import DetectorParams
 
 CURVES = [AdaptiveAxisCurve(), FixedAxisCurve()]
 
@@ -136,7 +137,7 @@ def test_targets_are_resampled_evenly_and_padded():
     assert gt.points.shape == (2, 1, 11, 3) and gt.mask.tolist() == [[True], [False]]
     steps = torch.diff(gt.points[0, 0, :, 0])
     torch.testing.assert_close(steps, torch.full_like(steps, 20 / 10 / cfg.window_m))
-    assert resample_polyline(np.zeros((3, 3)), 5) is None
+    assert resample_to_count(np.zeros((3, 3)), 5) is None
 
 
 def test_cell_targets_find_the_segment_in_each_cell():

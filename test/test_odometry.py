@@ -6,11 +6,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from fhld_ros.geometry import extrapolate_pose, interpolate_pose
 from msg_adapters.family import rclpy_family, rosbags_family
 from msg_adapters.odometry import (
     euler_to_matrix,
-    extrapolate_pose,
-    interpolate_pose,
     make_odometry,
     matrix_to_quaternion,
     odometry_to_matrix,

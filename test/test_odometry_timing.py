@@ -11,8 +11,8 @@ import pytest
 
 from fhld_ros.bagio import BagWriter, read_messages
 from fhld_ros.commands.replay import replay
+from fhld_ros.parameters import DetectorParams
 from fhld_ros.pipeline import LanePipeline
-from fhld_ros.ros.parameters import DetectorParams
 from msg_adapters.family import rosbags_family, stamp_to_ns
 from msg_adapters.lanes import marker_array_to_lanes
 from msg_adapters.odometry import euler_to_matrix, make_odometry

@@ -9,7 +9,7 @@ import pytest
 
 from fhld_ros.dataclass_dict import field_docs
 from fhld_ros.errors import CliError
-from fhld_ros.ros.parameters import DetectorParams, load_params_yaml
+from fhld_ros.parameters import DetectorParams, load_params_yaml
 
 YAML = Path(__file__).resolve().parents[1] / 'config' / 'lane_detector.yaml'
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fhld_ros.parameters import DetectorParams
 from fhld_ros.pipeline import LaneIdTracker, LanePipeline, ego_lane_bounds
 from fhld_ros.pose_buffer import PoseBuffer
-from fhld_ros.ros.parameters import DetectorParams
 from msg_adapters.family import rosbags_family
 from msg_adapters.odometry import euler_to_matrix, make_odometry
 from msg_adapters.pointcloud2 import create_cloud

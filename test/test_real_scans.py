@@ -14,7 +14,7 @@ import pytest
 from fhld_ros.errors import CliError
 from fhld_ros.evaluation import real_scans
 from fhld_ros.evaluation.real_scans import LabelledLine, ScanLabels, score_scan
-from fhld_ros.ros.parameters import DetectorParams
+from fhld_ros.parameters import DetectorParams
 
 if not real_scans.DEFAULT_DIR.is_dir():
     pytest.skip(f'{real_scans.DEFAULT_DIR} is absent', allow_module_level=True)

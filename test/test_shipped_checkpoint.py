@@ -5,14 +5,14 @@ import numpy as np
 import pytest
 import torch
 
+from fhld_ros.data.cache import TEST_SEED_BASE, CacheSettings, scenario_for_seed
+from fhld_ros.data.samples import training_samples
 from fhld_ros.detectors import CURVE_POINTS, fhld_variants, with_evidence
 from fhld_ros.evaluation import metrics
 from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint
 from fhld_ros.model.config import FhldConfig
-from fhld_ros.ros.parameters import DetectorParams
+from fhld_ros.parameters import DetectorParams
 from fhld_ros.sim.simulator import Simulator
-from fhld_ros.training.cache import TEST_SEED_BASE, CacheSettings, scenario_for_seed
-from fhld_ros.training.samples import training_samples
 
 # Held-out seeds (never trained on); thresholds sit a margin below what the shipped weights
 # score on these windows (docs/accuracy.md) so a regression fails the test.

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from fhld_ros.annotation.calibration import CameraCalibration
-from fhld_ros.annotation.labels2d import read_label_dir, read_labels, write_labels
 from fhld_ros.bagio import read_messages
+from fhld_ros.camera.calibration import CameraCalibration
+from fhld_ros.camera.labels2d import read_label_dir, read_labels, write_labels
 from fhld_ros.cli import main
-from fhld_ros.evaluation.metrics import resample_polyline
+from fhld_ros.geometry import resample_polyline
 from fhld_ros.sim.camera import SimCamera, mount_extrinsic, sweep_stamp_ns
 from fhld_ros.sim.gt_lines import crop_to_disc
 from fhld_ros.sim.labels2d_gt import LABEL_STEP_M, sim_image_labels

@@ -4,11 +4,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fhld_ros.data.cache import ALL_SENSORS
 from fhld_ros.sim import ego
 from fhld_ros.sim.lidar import SENSORS, ouster_dtype, velodyne_dtype
 from fhld_ros.sim.scene import ASPHALT, GROUND_MATERIALS, PAINT
 from fhld_ros.sim.simulator import Simulator
-from fhld_ros.training.cache import ALL_SENSORS
 
 
 def test_presets_cover_32_64_128_beams_with_real_angle_sets() -> None:

@@ -8,11 +8,11 @@ import pytest
 from scipy.spatial import cKDTree
 
 from fhld_ros.bev import BevSpec
+from fhld_ros.data.samples import paint_contrast, training_samples
 from fhld_ros.intensity import normalize_intensity
 from fhld_ros.sim.layout import MAX_LINES_PER_WINDOW, TOPOLOGIES, max_lines_per_window
 from fhld_ros.sim.scene import GROUND_MATERIALS, PAINT
 from fhld_ros.sim.simulator import Simulator
-from fhld_ros.training.samples import paint_contrast, training_samples
 
 
 def world_points(sweep) -> tuple[np.ndarray, np.ndarray]:

@@ -10,14 +10,14 @@ import sys
 import numpy as np
 import pytest
 
+from fhld_ros.data.cache import TEST_SEED_BASE, scenario_for_seed
+from fhld_ros.data.samples import _window_sweeps, scale_intensity, training_samples
 from fhld_ros.evaluation import testset
 from fhld_ros.evaluation.testset import CONDITIONS, WORN_PAINT_CONTRAST
 from fhld_ros.intensity import ABSOLUTE, CONTRAST
-from fhld_ros.ros.parameters import DetectorParams
+from fhld_ros.parameters import DetectorParams
 from fhld_ros.sim.lidar import ouster_dtype, velodyne_dtype
 from fhld_ros.sim.simulator import Simulator
-from fhld_ros.training.cache import TEST_SEED_BASE, scenario_for_seed
-from fhld_ros.training.samples import _window_sweeps, scale_intensity, training_samples
 
 
 @pytest.mark.slow

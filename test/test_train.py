@@ -17,6 +17,17 @@ from scipy.spatial import cKDTree
 
 from fhld_ros.bev import EMPTY_MIN_HEIGHT, BevSpec
 from fhld_ros.cli import main as fhld
+from fhld_ros.data.cache import (
+    ALL_SENSORS,
+    ALL_TOPOLOGIES,
+    CacheSettings,
+    build_cache,
+    read_meta,
+    scenario_for_seed,
+    shard_path,
+)
+from fhld_ros.data.samples import training_samples
+from fhld_ros.data.variation import SHARES
 from fhld_ros.model.checkpoint import load_checkpoint, save_checkpoint
 from fhld_ros.model.detector import FhldDetector
 from fhld_ros.sim.simulator import Simulator
@@ -29,20 +40,9 @@ from fhld_ros.training.augment import (
     warp_raster,
     warp_rasters,
 )
-from fhld_ros.training.cache import (
-    ALL_SENSORS,
-    ALL_TOPOLOGIES,
-    CacheSettings,
-    build_cache,
-    read_meta,
-    scenario_for_seed,
-    shard_path,
-)
 from fhld_ros.training.config import cache_settings, load_config
 from fhld_ros.training.dataset import CacheDataset, collate
 from fhld_ros.training.loop import init_weights
-from fhld_ros.training.samples import training_samples
-from fhld_ros.training.variation import SHARES
 
 pytestmark = pytest.mark.usefixtures('one_torch_thread')
 

@@ -23,8 +23,9 @@ from test_train import (
 from fhld_ros.bagio import BagWriter
 from fhld_ros.bev import BevSpec
 from fhld_ros.cli import main as fhld
+from fhld_ros.data.bag_source import LabelledBag, bag_key, bag_samples, build_bag_cache
+from fhld_ros.data.samples import training_samples
 from fhld_ros.sim.simulator import Simulator
-from fhld_ros.training.bag_source import LabelledBag, bag_key, bag_samples, build_bag_cache
 from fhld_ros.training.config import load_config
 from fhld_ros.training.dataset import (
     CacheDataset,
@@ -32,7 +33,6 @@ from fhld_ros.training.dataset import (
     WeightedSourceSampler,
     training_set,
 )
-from fhld_ros.training.samples import training_samples
 from msg_adapters.lanes import lanes_to_marker_array
 from msg_adapters.odometry import make_odometry
 from msg_adapters.pointcloud2 import create_cloud

@@ -16,14 +16,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import uniform_filter1d
 
-from fhld_ros.annotation.calibration import CameraCalibration
 from fhld_ros.annotation.ground import GroundSurface, below_sensor, segment_ground
-from fhld_ros.annotation.labels2d import ImageLabels
 from fhld_ros.annotation.lane_regions import LaneMembers, lane_members
 from fhld_ros.annotation.recovery import recover_lane
-from fhld_ros.evaluation.metrics import resample_polyline
+from fhld_ros.camera.calibration import CameraCalibration
+from fhld_ros.camera.labels2d import ImageLabels
+from fhld_ros.geometry import pose_at, resample_polyline
 from fhld_ros.intensity import CONTRAST, GROUND_LEVEL, IntensityEncoder
-from fhld_ros.pose_buffer import pose_at
 
 PAST_S = 0.5
 FUTURE_S = 2.0

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from fhld_ros.annotation.calibration import CameraCalibration
-from fhld_ros.annotation.labels2d import ImageLabels
+from fhld_ros.camera.calibration import CameraCalibration
+from fhld_ros.camera.labels2d import ImageLabels
 
 COLOURS = ('tab:red', 'tab:orange', 'gold', 'tab:green', 'tab:cyan', 'tab:blue', 'tab:purple',
            'tab:pink')

@@ -31,7 +31,7 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 from scipy.spatial import cKDTree
 
-from fhld_ros.evaluation.metrics import resample_polyline
+from fhld_ros.geometry import resample_polyline
 
 STEP_M = 0.5  # lanes are compared and fused at this spacing (autolabel's own)
 OVERLAP_M = 0.6  # a point this close to another lane lies beside it

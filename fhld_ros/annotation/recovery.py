@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fhld_ros.evaluation.metrics import resample_polyline
+from fhld_ros.geometry import resample_polyline
 
 BIN_M = 0.5
 CROSSING_GAP_M = 0.25

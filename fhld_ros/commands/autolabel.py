@@ -25,10 +25,7 @@ import numpy as np
 from tqdm import tqdm
 
 from fhld_ros.annotation.autolabel import Autolabeler, LabelledImage, PoseTrack
-from fhld_ros.annotation.calibration import CameraCalibration
-from fhld_ros.annotation.camera_topics import CAMERA_INFO, IMAGE, TF_STATIC
 from fhld_ros.annotation.figure import draw_autolabel
-from fhld_ros.annotation.labels2d import ImageLabels, read_label_dir
 from fhld_ros.annotation.lane_map import build_lane_map
 from fhld_ros.bagio import (
     BagWriter,
@@ -38,8 +35,11 @@ from fhld_ros.bagio import (
     topic_counts,
     write_file_atomically,
 )
+from fhld_ros.camera.calibration import CameraCalibration
+from fhld_ros.camera.camera_topics import CAMERA_INFO, IMAGE, TF_STATIC
+from fhld_ros.camera.labels2d import ImageLabels, read_label_dir
+from fhld_ros.data.bag_source import LANES_GT, MARKER_ARRAY, ODOM, POINTS, TOPIC_TYPES
 from fhld_ros.errors import ConfigError
-from fhld_ros.training.bag_source import LANES_GT, MARKER_ARRAY, ODOM, POINTS, TOPIC_TYPES
 from msg_adapters.camera import msg_to_image
 from msg_adapters.family import stamp_to_ns
 from msg_adapters.lanes import lanes_to_marker_array, unique_marker_ids

@@ -23,9 +23,9 @@ from fhld_ros.commands.replay import replay
 from fhld_ros.errors import ConfigError
 from fhld_ros.evaluation.evaluate import Frame, draw_top_view, evaluate_bags, summary
 from fhld_ros.model.checkpoint import DEFAULT_CHECKPOINT
+from fhld_ros.parameters import DetectorParams
 from fhld_ros.pipeline import LanePipeline
 from fhld_ros.rolling_grid import BevWindow
-from fhld_ros.ros.parameters import DetectorParams
 from msg_adapters.family import stamp_to_ns
 
 

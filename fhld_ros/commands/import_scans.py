@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from fhld_ros.annotation.calibration import CameraCalibration
-from fhld_ros.annotation.camera_topics import write_camera
 from fhld_ros.bagio import BagWriter, check_output
+from fhld_ros.camera.calibration import CameraCalibration
+from fhld_ros.camera.camera_topics import write_camera
 from fhld_ros.errors import ConfigError
 from fhld_ros.importing import kitti
 from fhld_ros.importing.pcd import IDENTITY_VIEWPOINT, read_pcd, to_xyzi

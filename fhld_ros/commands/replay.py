@@ -17,8 +17,8 @@ from tqdm import tqdm
 from fhld_ros.bagio import BagWriter, check_output, read_messages, topic_counts
 from fhld_ros.detectors import make_detector
 from fhld_ros.errors import ConfigError
+from fhld_ros.parameters import DetectorParams, load_params_yaml
 from fhld_ros.pipeline import LanePipeline
-from fhld_ros.ros.parameters import DetectorParams, load_params_yaml
 from msg_adapters.family import stamp_to_ns
 from msg_adapters.lanes import lane_to_path_cdr, lanes_to_marker_array_cdr
 

@@ -30,15 +30,15 @@ from pathlib import Path
 
 import numpy as np
 
-from fhld_ros.annotation.labels2d import read_label_dir, write_labels
+from fhld_ros.camera.labels2d import read_label_dir, write_labels
 from fhld_ros.cli import main as fhld
+from fhld_ros.data.bag_source import LabelledBag, bag_samples, label_at, read_labels
+from fhld_ros.data.cache import TEST_SEED_BASE, CacheSettings
+from fhld_ros.data.samples import lanes_in_window
 from fhld_ros.errors import ConfigError
 from fhld_ros.evaluation.evaluate import evaluate_bags, summary
 from fhld_ros.evaluation.metrics import PointCounts, point_counts
 from fhld_ros.sim.lidar import SENSORS
-from fhld_ros.training.bag_source import LabelledBag, bag_samples, label_at, read_labels
-from fhld_ros.training.cache import TEST_SEED_BASE, CacheSettings
-from fhld_ros.training.samples import lanes_in_window
 
 AUTOLABEL_SEED_BASE = TEST_SEED_BASE + 500_000
 VISIBLE_GT, ALL_GT = '/camera/lanes_gt', '/lanes_gt'

@@ -37,6 +37,8 @@ from scipy.ndimage import distance_transform_edt
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
+from fhld_ros.geometry import resample_polyline
+
 SAMPLE_STEP = 0.02  # m, dense resampling of the point metric (<= 2 cm)
 POINT_THRESHOLDS = (0.10, 0.30)  # m
 ONCE_IOU_THRESH = 0.3
@@ -54,23 +56,6 @@ Lanes = Sequence[np.ndarray]
 
 
 # --- geometry -----------------------------------------------------------------------------
-
-def resample_polyline(points: np.ndarray, step: float = SAMPLE_STEP) -> np.ndarray:
-    """Points at equal arc length along a polyline ((K, D), any D), spacing <= step, both ends
-    kept."""
-    pts = np.asarray(points, dtype=np.float64)
-    pts = pts.reshape(-1, pts.shape[-1])
-    if len(pts) < 2:
-        return pts.copy()
-    seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
-    pts = pts[np.concatenate([[True], seg > 0])]  # np.interp needs increasing arc length
-    seg = seg[seg > 0]
-    if len(pts) < 2:
-        return pts.copy()
-    arc = np.concatenate([[0.0], np.cumsum(seg)])
-    t = np.linspace(0.0, arc[-1], int(np.ceil(arc[-1] / step)) + 1)
-    return np.stack([np.interp(t, arc, pts[:, k]) for k in range(pts.shape[1])], axis=1)
-
 
 def resample_lanes(lanes: Lanes, step: float = SAMPLE_STEP) -> np.ndarray:
     """All lanes resampled and stacked, (N, 3)."""

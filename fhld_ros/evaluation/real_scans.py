@@ -30,13 +30,13 @@ from typing import Any
 
 import numpy as np
 
+from fhld_ros.data.samples import scale_intensity
 from fhld_ros.detectors import make_detector
 from fhld_ros.errors import ConfigError
 from fhld_ros.importing.kitti import read_bin
 from fhld_ros.importing.pcd import XYZI_DTYPE
+from fhld_ros.parameters import DetectorParams
 from fhld_ros.pipeline import LaneDetector, LanePipeline
-from fhld_ros.ros.parameters import DetectorParams
-from fhld_ros.training.samples import scale_intensity
 from msg_adapters.family import rosbags_family
 from msg_adapters.pointcloud2 import create_cloud
 

@@ -38,6 +38,13 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from fhld_ros.data.cache import (
+    TEST_SEED_BASE,
+    CacheSettings,
+    scenario_for_seed,
+    single_sweep_windows,
+)
+from fhld_ros.data.samples import training_samples
 from fhld_ros.detectors import (
     FHLD_VARIANTS,
     classical_detector,
@@ -47,17 +54,10 @@ from fhld_ros.detectors import (
 from fhld_ros.errors import ConfigError
 from fhld_ros.evaluation import metrics
 from fhld_ros.intensity import ABSOLUTE
+from fhld_ros.parameters import DetectorParams
 from fhld_ros.rolling_grid import BevWindow
-from fhld_ros.ros.parameters import DetectorParams
 from fhld_ros.sim.lidar import SENSORS
 from fhld_ros.sim.simulator import Simulator
-from fhld_ros.training.cache import (
-    TEST_SEED_BASE,
-    CacheSettings,
-    scenario_for_seed,
-    single_sweep_windows,
-)
-from fhld_ros.training.samples import training_samples
 
 DETECTORS = ('classical', *FHLD_VARIANTS)
 SEEDS = 56

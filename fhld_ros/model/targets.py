@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from fhld_ros.geometry import resample_to_count
 from fhld_ros.model.config import FhldConfig
 
 
@@ -43,28 +44,13 @@ def to_metres(uvz: np.ndarray, window_m: float) -> np.ndarray:
     return out
 
 
-def resample_polyline(xyz: np.ndarray, count: int) -> np.ndarray | None:
-    """count points equally spaced in 3D arc length; None for a degenerate lane."""
-    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-    xyz = xyz[np.isfinite(xyz).all(axis=1)]
-    if len(xyz) < 2:
-        return None
-    step = np.linalg.norm(np.diff(xyz, axis=0), axis=1)
-    keep = np.concatenate([[True], step > 1e-9])  # repeated points break the interpolation
-    xyz, arc = xyz[keep], np.concatenate([[0.0], np.cumsum(step[step > 1e-9])])
-    if arc[-1] <= 1e-6:
-        return None
-    s = np.linspace(0.0, arc[-1], count)
-    return np.stack([np.interp(s, arc, xyz[:, k]) for k in range(3)], axis=1)
-
-
 def prepare_targets(targets: Sequence[Sequence[np.ndarray]] | LaneTargets, cfg: FhldConfig,
                     device: torch.device | str = 'cpu') -> LaneTargets:
     if isinstance(targets, LaneTargets):
         return LaneTargets(targets.points.to(device), targets.mask.to(device))
     per_item = []
     for lanes in targets:
-        resampled = (resample_polyline(lane, cfg.gt_points) for lane in lanes)
+        resampled = (resample_to_count(lane, cfg.gt_points) for lane in lanes)
         per_item.append([to_normalised(r, cfg.window_m) for r in resampled if r is not None])
     batch, width = len(per_item), max([1, *(len(lanes) for lanes in per_item)])
     points = np.zeros((batch, width, cfg.gt_points, 3), dtype=np.float32)

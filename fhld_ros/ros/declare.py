@@ -11,7 +11,7 @@ from rclpy.node import Node
 
 from fhld_ros.dataclass_dict import field_docs, from_dict, to_plain
 from fhld_ros.errors import ConfigError
-from fhld_ros.ros.parameters import DetectorParams, type_problem
+from fhld_ros.parameters import DetectorParams, type_problem
 
 # rclpy's refusal of a value of the wrong type (InvalidParameterTypeException's wording)
 _WRONG_TYPE = re.compile(

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fhld_ros.annotation.calibration import CameraCalibration
+from fhld_ros.camera.calibration import CameraCalibration
 from fhld_ros.sim.markings import LINE
 from fhld_ros.sim.markings import NONE as NO_PAINT
 from fhld_ros.sim.obstacles import (

@@ -8,9 +8,9 @@ import argparse
 import numpy as np
 from PIL import Image, ImageDraw
 
-from fhld_ros.annotation.calibration import CameraCalibration
-from fhld_ros.annotation.labels2d import ImageLabels, LaneLabel2D
-from fhld_ros.evaluation.metrics import resample_polyline
+from fhld_ros.camera.calibration import CameraCalibration
+from fhld_ros.camera.labels2d import ImageLabels, LaneLabel2D
+from fhld_ros.geometry import resample_polyline
 from fhld_ros.sim.camera import CameraImage, SimCamera
 from fhld_ros.sim.gt_lines import crop_to_disc, runs
 from fhld_ros.sim.simulator import Simulator

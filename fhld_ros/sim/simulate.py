@@ -22,10 +22,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from fhld_ros.annotation.calibration import CameraCalibration
-from fhld_ros.annotation.camera_topics import write_camera
-from fhld_ros.annotation.labels2d import ImageLabels, label_path, write_labels
 from fhld_ros.bagio import BagWriter, check_file_output, check_output, write_file_atomically
+from fhld_ros.camera.calibration import CameraCalibration
+from fhld_ros.camera.camera_topics import write_camera
+from fhld_ros.camera.labels2d import ImageLabels, label_path, write_labels
 from fhld_ros.errors import CliError
 from fhld_ros.intensity import normalize_intensity
 from fhld_ros.sim.camera import CAMERA_FRAME, SimCamera, sweep_stamp_ns

@@ -27,13 +27,13 @@ from typing import Any
 
 import yaml
 
+from fhld_ros.data.bag_source import LabelledBag
+from fhld_ros.data.cache import ALL_SENSORS, ALL_TOPOLOGIES, TEST_SEED_BASE, CacheSettings
+from fhld_ros.data.variation import SHARES
 from fhld_ros.dataclass_dict import from_dict
 from fhld_ros.model.config import FhldConfig
 from fhld_ros.training.augment import AugmentParams
-from fhld_ros.training.bag_source import LabelledBag
-from fhld_ros.training.cache import ALL_SENSORS, ALL_TOPOLOGIES, TEST_SEED_BASE, CacheSettings
 from fhld_ros.training.distill import CURVE_WEIGHT
-from fhld_ros.training.variation import SHARES
 
 SCHEDULES = ('constant', 'cosine', 'step')
 SECTIONS = ('seed', 'model', 'data', 'augment', 'train')

@@ -16,6 +16,8 @@ import torch
 from torch import Tensor
 from torch.utils.data import ConcatDataset, Dataset, DistributedSampler, Sampler
 
+from fhld_ros.data.bag_source import bag_cache
+from fhld_ros.data.cache import cache_seeds, read_meta, shard_path
 from fhld_ros.training.augment import (
     AugmentParams,
     centre_crop,
@@ -24,8 +26,6 @@ from fhld_ros.training.augment import (
     warp_lanes,
     warp_raster,
 )
-from fhld_ros.training.bag_source import bag_cache
-from fhld_ros.training.cache import cache_seeds, read_meta, shard_path
 from fhld_ros.training.config import TrainConfig, cache_settings
 
 WEIGHTED_DRAWS_KEY = 0x50CE5  # the weighted draws' own generator stream

@@ -25,14 +25,14 @@ from torch import Tensor
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, Dataset
 
+from fhld_ros.data.bag_source import bag_cache
+from fhld_ros.data.cache import build_cache, shard_path
 from fhld_ros.evaluation.metrics import PointCounts, point_counts
 from fhld_ros.model.checkpoint import load_checkpoint
 from fhld_ros.model.config import FhldConfig
 from fhld_ros.model.detector import FhldDetector
 from fhld_ros.model.losses import FhldCriterion
 from fhld_ros.training.augment import warp_rasters
-from fhld_ros.training.bag_source import bag_cache
-from fhld_ros.training.cache import build_cache, shard_path
 from fhld_ros.training.config import TrainConfig, TrainSection, cache_settings
 from fhld_ros.training.dataset import (
     CacheDataset,

@@ -6,14 +6,11 @@ same way. The shares a cache was built with are recorded in its index (variation
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
 from fhld_ros.sim.lidar import INTENSITY_SCALES
-
-if TYPE_CHECKING:
-    from fhld_ros.training.cache import CacheSettings
 
 # below ~1.6x, worn simulated paint is lost in the asphalt's own patches (+-25 %), and lanes
 # taught there were drawn on unmarked roads too (docs/training.md)
@@ -36,7 +33,18 @@ SHARES = {'no_markings_share': NO_MARKINGS_SHARE, 'single_sweep_share': SINGLE_S
           'bright_asphalt_share': ROAD_LOOK_SHARE}
 
 
-def sensor_variation(seed: int, settings: CacheSettings) -> dict:
+class VariationOptions(Protocol):
+    """The options a cache's settings (data/cache.py CacheSettings) give the draws below."""
+
+    no_markings_share: float
+    single_sweep_share: float
+    bright_asphalt_share: float
+    road_look: bool
+    bare_curbs: bool
+    laser_gains: bool
+
+
+def sensor_variation(seed: int, settings: VariationOptions) -> dict:
     """What real sensors and roads vary, drawn per training seed (settings: which options):
 
     * paint: 60 % worn, beads gone, reflectance WORN_PAINT_RANGE x the asphalt's
@@ -70,7 +78,7 @@ def sensor_variation(seed: int, settings: CacheSettings) -> dict:
             **(_laser_gains(seed) if settings.laser_gains else {})}
 
 
-def variation_record(settings: CacheSettings) -> dict:
+def variation_record(settings: VariationOptions) -> dict:
     """The cache index's record of what shaped its shards besides the settings' own fields.
 
     A share at its default is recorded as before it was a setting, so older caches stay valid.
@@ -96,7 +104,7 @@ def _log_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
     return float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
 
 
-def _road_look(rng: np.random.Generator, settings: CacheSettings) -> dict:
+def _road_look(rng: np.random.Generator, settings: VariationOptions) -> dict:
     """sensor_variation's pavement and mount draws (after its older ones, which stay put)."""
     bright = rng.random() < settings.bright_asphalt_share
     asphalt = round(_log_uniform(rng, *BRIGHT_ASPHALT_RANGE), 3)

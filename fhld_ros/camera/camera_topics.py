@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from fhld_ros.annotation.calibration import CameraCalibration
+from fhld_ros.camera.calibration import CameraCalibration
 from msg_adapters.camera import camera_info_msg, image_to_msg, tf_static_msg
 
 CAMERA_INFO, IMAGE, TF_STATIC = '/camera/camera_info', '/camera/image_raw', '/tf_static'

@@ -40,13 +40,13 @@ import numpy as np
 from tqdm import tqdm
 
 from fhld_ros.bev import BevSpec
+from fhld_ros.data.samples import TrainingSample, training_samples
+from fhld_ros.data.variation import SHARES, sensor_variation, variation_record
 from fhld_ros.dataclass_dict import to_plain
 from fhld_ros.intensity import CONTRAST, INTENSITY_ENCODINGS
 from fhld_ros.sim.layout import TOPOLOGIES
 from fhld_ros.sim.lidar import SENSORS, SPINNING
 from fhld_ros.sim.simulator import Simulator
-from fhld_ros.training.samples import TrainingSample, training_samples
-from fhld_ros.training.variation import SHARES, sensor_variation, variation_record
 
 SHARD_FORMAT = 1
 SAMPLE_OPTIONS = ('intensity_gain', 'single_sweep')  # scenario keys that are not Simulator's

@@ -38,17 +38,17 @@ from tqdm import tqdm
 
 from fhld_ros.bagio import BagError, bag_topics, read_lane_sets, read_messages, topic_counts
 from fhld_ros.bev import BevSpec
-from fhld_ros.pipeline import LanePipeline
-from fhld_ros.rolling_grid import BevWindow
-from fhld_ros.ros.parameters import DetectorParams
-from fhld_ros.training.cache import (
+from fhld_ros.data.cache import (
     SHARD_FORMAT,
     CacheSettings,
     pack_samples,
     shard_path,
     write_shard,
 )
-from fhld_ros.training.samples import TrainingSample, accumulation, lanes_in_window, window_ends
+from fhld_ros.data.samples import TrainingSample, accumulation, lanes_in_window, window_ends
+from fhld_ros.parameters import DetectorParams
+from fhld_ros.pipeline import LanePipeline
+from fhld_ros.rolling_grid import BevWindow
 from msg_adapters.lanes import LaneSet
 
 BAG_FORMAT = 1  # raise when the windows of the same bag and settings would change
