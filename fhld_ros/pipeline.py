@@ -1,10 +1,13 @@
 """The core that the node and `fhld replay` both drive: sweeps and odometry in, lanes out.
 
-    pipeline.add_odometry(msg)        # any time, any order
-    pipeline.add_cloud(msg)           # decode + pose + insert into the rolling grid
-    out = pipeline.detect()           # None when nothing new arrived since the last call
+    pipeline.receive_odometry(msg)    # any time, any order; a bad message dropped and counted
+    pipeline.receive_cloud(msg)       # decode + pose + insert into the rolling grid
+    out = pipeline.detect()           # None unless a detection is due (due_window)
+    lane_messages(out)                # what is published (lane_output.py)
 
 Lanes come out in the output frame (the odometry's frame, else the cloud's) with stable ids.
+A detection is due when a sweep at least 0.9 / rate_hz newer (sweep stamps, not the clock)
+than the last detected one is in: the node and a replay of its input detect the same sweeps.
 
 Odometry timing: a sweep's pose is interpolated inside the odometry buffer. A sweep newer than
 the newest odometry waits, in stamp order, until odometry reaches its stamp or until the newest
@@ -27,10 +30,10 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
 from fhld_ros.bev import BevSpec
 from fhld_ros.intensity import ABSOLUTE
+from fhld_ros.lane_output import LaneIdTracker, LaneOutput, ego_lane_bounds
 from fhld_ros.parameters import DetectorParams
 from fhld_ros.pose_buffer import TIME_BACK_NS, PoseBuffer
 from fhld_ros.rolling_grid import BevWindow, RollingBevGrid
@@ -42,6 +45,10 @@ from msg_adapters.pointcloud2 import read_xyzi
 # them): each costs the newest sweep one more detection of waiting
 HELD_BACK_MAX = 2
 MAX_PENDING = 32  # waiting sweeps at most, whatever the stamps say (memory bound)
+# a sweep this much newer than the last detected one is due: 1 / rate_hz less slack for the
+# stamps' jitter (a limit on the clock instead phase-locked detections behind arrivals in the
+# node: +40 ms of waiting per sweep)
+DUE_FRACTION = 0.9
 
 
 class LaneDetector(Protocol):
@@ -52,72 +59,14 @@ class LaneDetector(Protocol):
 
 
 @dataclass
-class LaneOutput:
-    """One detection cycle, ready to publish."""
+class Intake:
+    """What one message did: the sweeps it let into the grid (stamps, oldest first), or why it
+    was dropped (a bad message, counted as bad_clouds / bad_odometry; nothing else changed)."""
 
-    stamp_ns: int
-    frame_id: str
-    lanes: list[np.ndarray]  # (K, 3) output frame
-    confidences: np.ndarray
-    ids: np.ndarray
-    outline: np.ndarray  # (5, 3) output frame
-    ego_left: np.ndarray | None
-    ego_right: np.ndarray | None
+    stamp_ns: int | None = None
+    let_in: list[int] = field(default_factory=list)
+    dropped: ValueError | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
-
-
-class LaneIdTracker:
-    """Keeps a lane's id from one cycle to the next by matching lanes in the output frame."""
-
-    def __init__(self, max_mean_distance_m: float = 1.0) -> None:
-        self.max_distance = max_mean_distance_m
-        self.previous: list[np.ndarray] = []
-        self.previous_ids: np.ndarray = np.zeros(0, dtype=np.int64)
-        self.next_id = 0
-
-    def reset(self) -> None:
-        self.previous, self.previous_ids = [], np.zeros(0, dtype=np.int64)
-
-    def assign(self, lanes: list[np.ndarray]) -> np.ndarray:
-        ids = np.full(len(lanes), -1, dtype=np.int64)
-        if lanes and self.previous:
-            cost = np.array([[_mean_distance(a, b) for b in self.previous] for a in lanes])
-            # inf (no overlap) would make the assignment infeasible; such pairs fail the test
-            rows, cols = linear_sum_assignment(np.minimum(cost, 1e6))
-            good = cost[rows, cols] <= self.max_distance
-            ids[rows[good]] = self.previous_ids[cols[good]]
-        fresh = ids < 0
-        ids[fresh] = self.next_id + np.arange(fresh.sum())
-        self.next_id += int(fresh.sum())
-        self.previous, self.previous_ids = lanes, ids
-        return ids
-
-
-def _mean_distance(a: np.ndarray, b: np.ndarray) -> float:
-    """Mean top-view distance from a's points to b's points, over a's overlap with b."""
-    d = np.sqrt(((a[:, None, :2] - b[None, :, :2]) ** 2).sum(-1)).min(axis=1)
-    overlap = d < 2.0
-    return float(d[overlap].mean()) if overlap.sum() >= 2 else np.inf
-
-
-def ego_lane_bounds(lanes_window: list[np.ndarray],
-                    reach_m: float = 5.0) -> tuple[int | None, int | None]:
-    """Indices of the lanes bounding the ego lane: nearest on the left (y > 0) and right.
-
-    A lane's lateral offset is taken at its point nearest to x = 0, if within reach_m.
-    """
-    left = right = None
-    best_left, best_right = np.inf, -np.inf
-    for index, lane in enumerate(lanes_window):
-        nearest = int(np.argmin(np.abs(lane[:, 0])))
-        if abs(lane[nearest, 0]) > reach_m:
-            continue
-        y = float(lane[nearest, 1])
-        if 0 < y < best_left:
-            left, best_left = index, y
-        elif best_right < y <= 0:
-            right, best_right = index, y
-    return left, right
 
 
 _WAIT = object()  # _pose_for: odometry may still come for this stamp
@@ -127,14 +76,15 @@ class LanePipeline:
     """Odometry + clouds -> rolling BEV grid -> detector -> lanes in the output frame."""
 
     def __init__(self, params: DetectorParams, detector: LaneDetector,
-                 expect_odometry: bool = True, detect_held_back: bool = False) -> None:
+                 expect_odometry: bool = True) -> None:
         self.params = params
         self.detector = detector
-        # The live node's: sweeps that waited for their odometry and went in together with
-        # newer ones (a pose DDS lost, resent later) get windows of their own, oldest first,
-        # instead of being overtaken by the newest (take_window)
-        self.held_back: collections.deque[int] | None = \
-            collections.deque(maxlen=HELD_BACK_MAX) if detect_held_back else None
+        # Sweeps that waited for their odometry and went in together with newer ones (a pose
+        # DDS lost, resent later; odometry slower than the sweeps) get windows of their own,
+        # oldest first, instead of being overtaken by the newest (take_window)
+        self.held_back: collections.deque[int] = collections.deque(maxlen=HELD_BACK_MAX)
+        self.min_interval_ns = int(DUE_FRACTION * 1e9 / params.rate_hz)
+        self.last_detected_ns: int | None = None
         # False when it is known that no odometry will come (a bag without it): no sweep waits
         self.expect_odometry = expect_odometry
         self.grid = RollingBevGrid(BevSpec(params.size_px, params.resolution_m),
@@ -150,22 +100,56 @@ class LanePipeline:
         self.sweeps_since_detection = 0
         self.wait_ns = round(params.odom_wait_sec * 1e9)
         self.newest_seen_ns: int | None = None  # cloud or odometry: the stream's clock
+        self.last_bad_odometry: tuple[int, str] | None = None
         # True from a sweep that odometry did not cover in time until the next odometry
         # message: meanwhile a sweep waits only for any newer message
         self.odometry_stopped = False
         self.pending: collections.deque[tuple] = collections.deque()  # in stamp order
         self.counters = {'clouds': 0, 'odometry': 0, 'detections': 0, 'sweeps_skipped': 0,
                          'resets': 0, 'clouds_without_odometry': 0, 'odometry_timeouts': 0,
-                         'clouds_extrapolated': 0}
+                         'clouds_extrapolated': 0, 'bad_clouds': 0, 'bad_odometry': 0}
 
     @property
     def uses_odometry(self) -> bool:
         return self.odom_frame is not None
 
-    def add_odometry(self, msg: Any) -> list[int]:
-        """Buffer one odometry message and let in the sweeps it covers; returns their stamps.
-        Raises ValueError (naming the problem), changing nothing, for an empty frame_id (it
-        would be the output frame) or a non-finite or non-unit pose."""
+    @property
+    def lost_odometry(self) -> bool:
+        """Odometry came, then stopped: sweeps go in one at a time, in the cloud frame."""
+        return self.odometry_stopped and self.uses_odometry
+
+    @property
+    def waiting_stamps(self) -> list[int]:
+        """The stamps of the sweeps waiting for their odometry, oldest first."""
+        return [waiting[0] for waiting in self.pending]
+
+    def receive_odometry(self, msg: Any) -> Intake:
+        """add_odometry, with a bad message dropped and counted (bad_odometry), never raised."""
+        try:
+            return self.add_odometry(msg)
+        except ValueError as exc:
+            try:
+                bad = (stamp_to_ns(msg.header.stamp), str(exc))
+            except (AttributeError, TypeError, ValueError):
+                bad = None
+            if bad is not None and bad == self.last_bad_odometry:
+                return Intake()  # the same message again (the node's second subscription)
+            self.last_bad_odometry = bad
+            self.counters['bad_odometry'] += 1
+            return Intake(dropped=exc)
+
+    def receive_cloud(self, msg: Any) -> Intake:
+        """add_cloud, with a bad cloud dropped and counted (bad_clouds), never raised."""
+        try:
+            return self.add_cloud(msg)
+        except ValueError as exc:
+            self.counters['bad_clouds'] += 1
+            return Intake(dropped=exc)
+
+    def add_odometry(self, msg: Any) -> Intake:
+        """Buffer one odometry message and let in the sweeps it covers. Raises ValueError
+        (naming the problem), changing nothing, for an empty frame_id (it would be the output
+        frame) or a non-finite or non-unit pose."""
         frame = str(msg.header.frame_id)
         if not frame:
             raise ValueError('odometry has an empty frame_id')
@@ -174,12 +158,12 @@ class LanePipeline:
         self.odom_frame, self.odom_child = frame, str(msg.child_frame_id)
         self._saw(stamp_ns)
         if not self.odometry.add(stamp_ns, pose):
-            return []  # a pose it has (the node's second odometry subscription)
+            return Intake(stamp_ns)  # a pose it has (the node's second odometry subscription)
         self.counters['odometry'] += 1
         # it is back: sweeps wait for their odometry again; but those that waited while it was
         # away, in the gap it left, go in alone now (nothing will fill that gap)
         resumed, self.odometry_stopped = self.odometry_stopped, False
-        return self._release(wait_in_gaps=not resumed)
+        return Intake(stamp_ns, self._release(wait_in_gaps=not resumed))
 
     def sensor_pose(self, stamp_ns: int, cloud_frame: str,
                     extrapolate_ns: int = 0) -> np.ndarray | None:
@@ -192,7 +176,7 @@ class LanePipeline:
             return None
         return pose if cloud_frame == self.odom_child else pose @ self.lidar_to_base
 
-    def add_cloud(self, msg: Any) -> dict[str, float]:
+    def add_cloud(self, msg: Any) -> Intake:
         """Decode one sweep; it goes into the grid with the sweeps it let in, or waits for its
         odometry (see the module doc). Raises ValueError (naming the problem) for bad input:
         a malformed cloud, one over params.max_points, an empty frame_id."""
@@ -212,9 +196,10 @@ class LanePipeline:
         # in stamp order, so the grid (which resets when time goes back) sees them in order
         index = bisect.bisect([s[0] for s in self.pending], stamp_ns)
         self.pending.insert(index, (stamp_ns, frame, xyz, intensity))
-        self._release()
+        let_in = self._release()
         done = time.perf_counter()
-        return {'decode_ms': (decoded - start) * 1e3, 'grid_insert_ms': (done - decoded) * 1e3}
+        return Intake(stamp_ns, let_in, timings_ms={'decode_ms': (decoded - start) * 1e3,
+                                                    'grid_insert_ms': (done - decoded) * 1e3})
 
     def expire_waiting(self) -> int:
         """Let every waiting sweep in now: with odometry where it covers, else per sweep (the
@@ -238,10 +223,6 @@ class LanePipeline:
             let_in.append(stamp_ns)
         self._hold_back(let_in)
         return let_in
-
-    def is_waiting(self, stamp_ns: int) -> bool:
-        """Whether the sweep of this stamp waits for its odometry."""
-        return any(waiting[0] == stamp_ns for waiting in self.pending)
 
     def insert_waiting(self) -> bool:
         """Let the oldest waiting sweep in now (at the end of a bag); False when none waits."""
@@ -295,7 +276,7 @@ class LanePipeline:
     def _hold_back(self, inserted: list[int]) -> None:
         """Sweeps that went into the grid behind a newer one in the same call waited for
         their odometry: note them for a window of their own (held_back)."""
-        if self.held_back is not None and self.output_frame == self.odom_frame:
+        if self.output_frame == self.odom_frame:
             self.held_back.extend(inserted[:-1])
 
     def _insert(self, stamp_ns: int, frame: str, xyz: np.ndarray, intensity: np.ndarray,
@@ -321,12 +302,8 @@ class LanePipeline:
 
     def take_window(self, due_ns: int | None = None) -> BevWindow | None:
         """The current window, or None if no sweep arrived since the last one was taken. A
-        sweep held back by its odometry (detect_held_back) and stamped at or after due_ns comes
-        first, as the window around it (the sweeps up to it).
-
-        Cheap relative to the detector: the node calls it under its lock and runs
-        detect_window outside, so incoming sweeps never wait for the model.
-        """
+        sweep held back by its odometry and stamped at or after due_ns comes first, as the
+        window around it (the sweeps up to it). Regardless of rate_hz: see due_window."""
         if self.sweeps_since_detection == 0:
             return None
         while self.held_back:
@@ -361,10 +338,34 @@ class LanePipeline:
             ego_right=None if right is None else lanes[right],
             timings_ms={'model_ms': (detected - start) * 1e3})
 
+    @property
+    def detection_due(self) -> bool:
+        """A sweep came since the last window was taken, and the newest is min_interval_ns newer
+        than the last detected one (or older: time went back)."""
+        newest, last = self.grid.newest_stamp_ns, self.last_detected_ns
+        return self.sweeps_since_detection > 0 and newest is not None and (
+            last is None or not 0 <= newest - last < self.min_interval_ns)
+
+    def due_window(self) -> BevWindow | None:
+        """The window to detect on now, None when no detection is due: the newest sweep (or
+        one its odometry held back) once it is min_interval_ns newer than the last detected
+        one (or older: time went back).
+
+        Cheap relative to the detector: the node calls it under its lock and runs
+        detect_window outside, so incoming sweeps never wait for the model.
+        """
+        if not self.detection_due:
+            return None
+        last = self.last_detected_ns
+        window = self.take_window(None if last is None else last + self.min_interval_ns)
+        if window is not None:
+            self.last_detected_ns = window.stamp_ns
+        return window
+
     def detect(self) -> LaneOutput | None:
-        """take_window + detect_window; None when nothing new arrived."""
+        """due_window + detect_window; None when no detection is due."""
         start = time.perf_counter()
-        window = self.take_window()
+        window = self.due_window()
         if window is None:
             return None
         raster_ms = (time.perf_counter() - start) * 1e3

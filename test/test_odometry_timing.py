@@ -173,7 +173,7 @@ def test_the_wait_is_bounded_by_odom_wait_sec_in_stream_time():
         run.feed([event], finish=False)
         stamp = event[3]
         if event[2] == 'cloud' and stamp > T0 + 5 * SWEEP_NS:
-            waiting = [s[0] for s in pipeline.pending]
+            waiting = pipeline.waiting_stamps
             # sweep 6 waits until a stamp more than 0.25 s newer (sweep 9) arrives; then
             # each sweep goes in alone when the next one arrives
             assert waiting == ([stamp] if stamp >= T0 + 9 * SWEEP_NS else
@@ -186,7 +186,7 @@ def test_the_live_clock_check_lets_waiting_sweeps_in():
     run = Run()
     pipeline = run.pipeline
     run.feed(events([T0], 0, 1 * MS, sweeps=2), finish=False)  # then nothing comes
-    assert [s[0] for s in pipeline.pending] == [T0 + SWEEP_NS]
+    assert pipeline.waiting_stamps == [T0 + SWEEP_NS]
     assert pipeline.expire_waiting() == 1  # what the node's poll does after odom_wait_sec
     assert pipeline.counters['clouds_without_odometry'] == 1 and pipeline.odometry_stopped
 
@@ -242,9 +242,9 @@ def test_time_going_back_forgets_the_poses_of_the_run_before():
     assert len(pipeline.grid) == 10 and pipeline.counters['clouds'] == 20
     # the bag loops: the first cloud of the new run comes before its odometry
     pipeline.add_cloud(_cloud(T0))
-    assert [s[0] for s in pipeline.pending] == [T0]  # waits: the old run's poses are gone
+    assert pipeline.waiting_stamps == [T0]  # waits: the old run's poses are gone
     elsewhere = euler_to_matrix(500.0, 0, 0, 0, 0, 0)  # the new run starts somewhere else
     pipeline.add_odometry(make_odometry(FAMILY, FAMILY.header(T0, 'odom'), 'lidar', elsewhere))
-    assert not pipeline.pending and pipeline.counters['resets'] == 1
+    assert not pipeline.waiting_stamps and pipeline.counters['resets'] == 1
     np.testing.assert_allclose(run.poses[T0], elsewhere)
     assert pipeline.counters['clouds_without_odometry'] == 0

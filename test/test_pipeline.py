@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from fhld_ros.parameters import DetectorParams
-from fhld_ros.pipeline import LaneIdTracker, LanePipeline, ego_lane_bounds
+from fhld_ros.lane_output import LaneIdTracker, ego_lane_bounds
+from fhld_ros.pipeline import LanePipeline
 from fhld_ros.pose_buffer import PoseBuffer
 from msg_adapters.family import rosbags_family
 from msg_adapters.odometry import euler_to_matrix, make_odometry
@@ -85,8 +86,9 @@ def test_lanes_come_out_in_the_odometry_frame_with_the_window_outline():
     pipeline = LanePipeline(DetectorParams(size_px=256, resolution_m=0.1), detector)
     pose = euler_to_matrix(100.0, 50.0, 2.0, 0, 0, np.pi / 2)
     pipeline.add_odometry(_odom(1_000_000_000, pose))
-    timings = pipeline.add_cloud(_cloud(1_000_000_000))
-    assert set(timings) == {'decode_ms', 'grid_insert_ms'}
+    intake = pipeline.add_cloud(_cloud(1_000_000_000))
+    assert set(intake.timings_ms) == {'decode_ms', 'grid_insert_ms'}
+    assert intake.stamp_ns == 1_000_000_000 and intake.let_in == [1_000_000_000]
     out = pipeline.detect()
     assert out.frame_id == 'odom' and out.stamp_ns == 1_000_000_000
     assert len(out.lanes) == 2  # the 0.2 lane is under score_threshold 0.5
@@ -157,18 +159,18 @@ def test_a_cloud_ahead_of_its_odometry_waits_for_it():
     # sweeps queue behind the odometry in stamp order, at most odom_wait_sec of stream time
     for k in (3, 2, 4, 5):
         pipeline.add_cloud(_cloud(k * 100_000_000))
-    assert [s[0] for s in pipeline.pending] == [k * 100_000_000 for k in range(2, 6)]
+    assert pipeline.waiting_stamps == [k * 100_000_000 for k in range(2, 6)]
     pipeline.add_odometry(_odom(300_000_000, euler_to_matrix(6.0, 0, 0, 0, 0, 0)))
-    assert [s[0] for s in pipeline.pending] == [400_000_000, 500_000_000]
+    assert pipeline.waiting_stamps == [400_000_000, 500_000_000]
     assert pipeline.counters['clouds'] == 3 and pipeline.counters['sweeps_skipped'] == 0
     pipeline.add_cloud(_cloud(1_400_000_000))  # 1.0 s past the oldest waiting: it still waits
     assert pipeline.counters['clouds'] == 3
     pipeline.add_cloud(_cloud(1_500_000_000))  # more: the waiting ones go in alone, and
     # while odometry stays away a sweep waits only for a newer message
-    assert [s[0] for s in pipeline.pending] == [1_500_000_000]
+    assert pipeline.waiting_stamps == [1_500_000_000]
     assert pipeline.counters['clouds'] == 6 and pipeline.counters['clouds_without_odometry'] == 3
     pipeline.add_odometry(_odom(1_500_000_000, euler_to_matrix(9.0, 0, 0, 0, 0, 0)))
-    assert not pipeline.pending and pipeline.output_frame == 'odom'
+    assert not pipeline.waiting_stamps and pipeline.output_frame == 'odom'
     assert pipeline.counters['clouds_without_odometry'] == 3 and not pipeline.odometry_stopped
     assert pipeline.counters['odometry_timeouts'] == 1
 
@@ -179,7 +181,7 @@ def test_an_empty_cloud_frame_id_is_refused_and_changes_nothing():
                             expect_odometry=False)
     with pytest.raises(ValueError, match='cloud has an empty frame_id'):
         pipeline.add_cloud(_cloud(100_000_000, frame=''))
-    assert pipeline.counters['clouds'] == 0 and not pipeline.pending
+    assert pipeline.counters['clouds'] == 0 and not pipeline.waiting_stamps
     assert pipeline.detect() is None
     pipeline.add_cloud(_cloud(200_000_000, frame='os_lidar'))
     assert pipeline.detect().frame_id == 'os_lidar'
@@ -241,24 +243,25 @@ def test_late_sweeps_go_in_extrapolated_up_to_the_reach_and_in_stamp_order():
         pipeline.add_odometry(_odom(k * 100_000_000, euler_to_matrix(2.0 * k, 0, 0, 0, 0, 0)))
     for k in (3, 4, 5):  # their poses lost on the way
         pipeline.add_cloud(_cloud(k * 100_000_000))
-    assert [s[0] for s in pipeline.pending] == [300_000_000, 400_000_000, 500_000_000]
+    assert pipeline.waiting_stamps == [300_000_000, 400_000_000, 500_000_000]
     # the node's thread lets in those that waited too long: as far as the reach goes
     assert pipeline.extrapolate_waiting(500_000_000) == [300_000_000, 400_000_000]
-    assert [s[0] for s in pipeline.pending] == [500_000_000]
+    assert pipeline.waiting_stamps == [500_000_000]
     assert pipeline.counters['clouds_extrapolated'] == 2
     assert pipeline.counters['clouds_without_odometry'] == 0
-    pipeline.detect()
+    # the one let in behind a newer sweep first, in a window of its own (held back)
+    assert [pipeline.detect().stamp_ns for _ in range(2)] == [300_000_000, 400_000_000]
     np.testing.assert_allclose(detector.windows[-1].window_to_output[:3, 3], [8, 0, 0])
     assert pipeline.output_frame == 'odom'
     # the next pose that comes covers the one left; the grid went on in the odometry frame
     pipeline.add_odometry(_odom(600_000_000, euler_to_matrix(12.0, 0, 0, 0, 0, 0)))
-    assert not pipeline.pending and len(pipeline.grid) == 3
+    assert not pipeline.waiting_stamps and len(pipeline.grid) == 3
     off = LanePipeline(DetectorParams(size_px=64, resolution_m=0.5, odom_extrapolate_sec=0.0),
                        FixedLanes([], []))
     off.add_odometry(_odom(0, np.eye(4)))
     off.add_odometry(_odom(100_000_000, np.eye(4)))
     off.add_cloud(_cloud(200_000_000))
-    assert off.extrapolate_waiting(200_000_000) == [] and off.is_waiting(200_000_000)
+    assert off.extrapolate_waiting(200_000_000) == [] and off.waiting_stamps == [200_000_000]
 
 
 def test_a_sweep_in_a_gap_too_wide_waits_for_the_late_poses_that_fill_it():
@@ -268,18 +271,17 @@ def test_a_sweep_in_a_gap_too_wide_waits_for_the_late_poses_that_fill_it():
         pipeline.add_odometry(_odom(stamp, euler_to_matrix(stamp * 2e-8, 0, 0, 0, 0, 0)))
     pipeline.add_cloud(_cloud(300_000_000))
     pipeline.add_odometry(_odom(1_300_000_000, euler_to_matrix(26, 0, 0, 0, 0, 0)))
-    assert pipeline.is_waiting(300_000_000)  # 1.2 s between the poses around it
+    assert pipeline.waiting_stamps == [300_000_000]  # 1.2 s between the poses around it
     for stamp in (200_000_000, 400_000_000):  # resent
         pipeline.add_odometry(_odom(stamp, euler_to_matrix(stamp * 2e-8, 0, 0, 0, 0, 0)))
-    assert not pipeline.pending and pipeline.counters['clouds_without_odometry'] == 0
+    assert not pipeline.waiting_stamps and pipeline.counters['clouds_without_odometry'] == 0
     pipeline.detect()
     np.testing.assert_allclose(pipeline.detector.windows[-1].window_to_output[:3, 3], [6, 0, 0])
 
 
 def test_sweeps_held_back_by_their_odometry_get_windows_of_their_own():
     detector = FixedLanes([], [])
-    pipeline = LanePipeline(DetectorParams(size_px=64, resolution_m=0.5), detector,
-                            detect_held_back=True)
+    pipeline = LanePipeline(DetectorParams(size_px=64, resolution_m=0.5), detector)
     pipeline.add_odometry(_odom(0, np.eye(4)))
     pipeline.add_cloud(_cloud(0))
     assert pipeline.detect().stamp_ns == 0
@@ -298,10 +300,30 @@ def test_sweeps_held_back_by_their_odometry_get_windows_of_their_own():
     pipeline.add_odometry(_odom(500_000_000, euler_to_matrix(10.0, 0, 0, 0, 0, 0)))
     assert pipeline.take_window(due_ns=450_000_000).stamp_ns == 500_000_000
     assert pipeline.counters['sweeps_skipped'] == 1
-    # the offline pipeline (fhld replay) detects the newest, as always
-    offline = LanePipeline(DetectorParams(size_px=64, resolution_m=0.5), FixedLanes([], []))
-    offline.add_odometry(_odom(0, np.eye(4)))
-    for k in (1, 2):
-        offline.add_cloud(_cloud(k * 100_000_000))
-    offline.add_odometry(_odom(200_000_000, np.eye(4)))
-    assert offline.detect().stamp_ns == 200_000_000 and offline.detect() is None
+
+
+def test_a_detection_is_due_at_rate_hz_on_the_sweep_stamps():
+    params = DetectorParams(size_px=64, resolution_m=0.5, rate_hz=5.0)  # 180 ms apart at least
+    pipeline = LanePipeline(params, FixedLanes([], []), expect_odometry=False)
+    detected = []
+    for k in range(7):  # 10 Hz sweeps: every other one is detected
+        pipeline.add_cloud(_cloud(k * 100_000_000))
+        out = pipeline.detect()
+        detected += [] if out is None else [out.stamp_ns // 100_000_000]
+    assert detected == [0, 2, 4, 6] and pipeline.counters['sweeps_skipped'] == 3
+    assert pipeline.detect() is None  # nothing new
+    pipeline.add_cloud(_cloud(50_000_000))  # time went back (a bag loop): due at once
+    assert pipeline.detect().stamp_ns == 50_000_000
+
+
+def test_bad_messages_are_dropped_and_counted_by_receive():
+    pipeline = LanePipeline(DetectorParams(size_px=64, resolution_m=0.5), FixedLanes([], []))
+    intake = pipeline.receive_cloud(_cloud(100_000_000, frame=''))
+    assert 'empty frame_id' in str(intake.dropped) and intake.let_in == []
+    bad_pose = _odom(0, np.eye(4))
+    bad_pose.pose.pose.orientation.w = 0.0
+    assert 'has norm 0' in str(pipeline.receive_odometry(bad_pose).dropped)
+    assert pipeline.counters['bad_clouds'] == 1 and pipeline.counters['bad_odometry'] == 1
+    assert pipeline.receive_odometry(_odom(0, np.eye(4))).dropped is None
+    assert pipeline.receive_cloud(_cloud(0)).let_in == [0]
+    assert pipeline.counters['clouds'] == 1

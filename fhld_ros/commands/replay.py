@@ -1,7 +1,10 @@
 """`fhld replay IN_BAG OUT_BAG`: the node's pipeline on bag time, as fast as the machine allows.
 
-The detection timer runs on sensor stamps: it fires every 1/rate_hz seconds of bag time, so a
-replay gives the same lanes on any machine (deterministic), unlike a live run that may skip.
+A thin driver of LanePipeline, as the node is: the pipeline decides which sweeps are detected
+(rate_hz on sweep stamps), drops bad messages and builds the messages written, so a replay
+writes what the node publishes when each message is handled before the next arrives, and the
+same on any machine (a live node may skip sweeps while it is busy). What only a live node does:
+let sweeps in when no message at all comes (the wall clock), and extrapolate poses DDS lost.
 OUT_BAG follows bagio's output rule: an existing one is refused unless --overwrite (then only a
 bag folder is replaced), and one equal to, inside or containing IN_BAG always.
 """
@@ -17,10 +20,10 @@ from tqdm import tqdm
 from fhld_ros.bagio import BagWriter, check_output, read_messages, topic_counts
 from fhld_ros.detectors import make_detector
 from fhld_ros.errors import ConfigError
+from fhld_ros.lane_output import LANE_TOPICS, lane_messages
 from fhld_ros.parameters import DetectorParams, load_params_yaml
 from fhld_ros.pipeline import LanePipeline
 from msg_adapters.family import stamp_to_ns
-from msg_adapters.lanes import lane_to_path_cdr, lanes_to_marker_array_cdr
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -53,59 +56,46 @@ def replay(in_bag: Path, out_bag: Path, params: DetectorParams, points_topic: st
     topics = [points_topic] + ([odom_topic] if odom_topic in counts else [])
     has_odometry = counts.get(odom_topic, 0) > 0
     pipeline = LanePipeline(params, make_detector(params), expect_odometry=has_odometry)
-    period_ns = round(1e9 / params.rate_hz)
     lanes_topic = '/' + params.lanes_topic.strip('/')
-    next_tick: int | None = None
-    stats = {'sweeps': 0, 'dropped': 0, 'detections': 0}
+    detections = 0
     bar = tqdm(total=sum(counts[t] for t in topics), unit='msg', disable=not progress,
                desc='replay', file=sys.stderr)
     with BagWriter(out_bag, overwrite, inputs) as writer:
-        def publish(out) -> None:
-            writer.write(lanes_topic, 'visualization_msgs/msg/MarkerArray', out.stamp_ns,
-                         lanes_to_marker_array_cdr(out.stamp_ns, out.frame_id, out.lanes,
-                                                   out.confidences, out.ids, out.outline))
-            for side, lane in (('ego_left', out.ego_left), ('ego_right', out.ego_right)):
-                writer.write(f'{lanes_topic}/{side}', 'nav_msgs/msg/Path', out.stamp_ns,
-                             lane_to_path_cdr(out.stamp_ns, out.frame_id, lane))
-            stats['detections'] += 1
-
-        def timer() -> None:
-            """The detection timer, firing on the stamps of the sweeps in the grid."""
-            nonlocal next_tick
-            newest = pipeline.grid.newest_stamp_ns
-            if newest is None:
-                return
-            if next_tick is None or newest < next_tick - period_ns:
-                next_tick = newest  # first sweep, or time went back (the grid reset too)
-            while newest >= next_tick:
-                out = pipeline.detect()
-                if out is not None:
-                    publish(out)
-                next_tick += period_ns
-
-        def dropped(stamp_ns: int, exc: ValueError) -> None:
-            stats['dropped'] += 1
-            bar.write(f'dropped cloud at {stamp_ns * 1e-9:.3f} s: {exc}')
+        def detect_due() -> None:
+            nonlocal detections
+            while (out := pipeline.detect()) is not None:
+                for suffix, cdr in lane_messages(out).items():
+                    writer.write(lanes_topic + suffix, LANE_TOPICS[suffix], out.stamp_ns, cdr)
+                detections += 1
 
         for topic, _, msg in read_messages(in_bag, topics):
             bar.update()
-            if topic == points_topic:
-                try:
-                    pipeline.add_cloud(msg)
-                    stats['sweeps'] += 1
-                except ValueError as exc:
-                    dropped(stamp_to_ns(msg.header.stamp), exc)
-            else:
-                pipeline.add_odometry(msg)
-            timer()
+            cloud = topic == points_topic
+            intake = pipeline.receive_cloud(msg) if cloud else pipeline.receive_odometry(msg)
+            if intake.dropped is not None:
+                bar.write(f'dropped {"cloud" if cloud else "odometry"} at {_stamp_s(msg)}: '
+                          f'{intake.dropped}')
+            detect_due()
         # the bag ended before the odometry of its last sweeps: they go in one at a time
-        # (per sweep where no odometry covers them), each on the timer as before
+        # (per sweep where no odometry covers them)
         while pipeline.insert_waiting():
-            timer()
+            detect_due()
     bar.close()
-    if pipeline.counters['clouds_without_odometry']:  # sweeps detected alone, in their frame
-        stats['without_odometry'] = pipeline.counters['clouds_without_odometry']
+    counters = pipeline.counters
+    stats = {'sweeps': counters['clouds'],
+             'dropped': counters['bad_clouds'], 'detections': detections}
+    for key, name in (('clouds_without_odometry', 'without_odometry'),  # detected alone
+                      ('bad_odometry', 'bad_odometry')):
+        if counters[key]:
+            stats[name] = counters[key]
     return stats
+
+
+def _stamp_s(msg: object) -> str:
+    try:
+        return f'{stamp_to_ns(msg.header.stamp) * 1e-9:.3f} s'
+    except (AttributeError, TypeError, ValueError):
+        return 'an unreadable stamp'
 
 
 def run(args: argparse.Namespace) -> int:
@@ -118,6 +108,9 @@ def run(args: argparse.Namespace) -> int:
                    progress=not args.quiet, overwrite=args.overwrite)
     alone = (f', {stats["without_odometry"]} without odometry (detected alone)'
              if stats.get('without_odometry') else '')
+    if stats.get('bad_odometry'):
+        alone += f', {stats["bad_odometry"]} bad odometry messages dropped'
+
     print(f'replayed {stats["sweeps"]} sweeps ({stats["dropped"]} dropped{alone}), '
           f'{stats["detections"]} detections -> {args.out_bag}')
     return 0

@@ -199,14 +199,13 @@ def bag_samples(bag: LabelledBag, settings: CacheSettings, stats: Counter | None
                desc=f'bag {Path(bag.path).name}', dynamic_ncols=True)
     with bar:
         for topic, _, msg in read_messages(bag.path, topics):
-            try:
-                if topic == POINTS:
-                    stats['sweeps'] += 1
-                    bar.update()
-                    pipeline.add_cloud(msg)
-                else:
-                    pipeline.add_odometry(msg)
-            except ValueError:  # the node drops such a message too
+            if topic == POINTS:
+                stats['sweeps'] += 1
+                bar.update()
+                dropped = pipeline.receive_cloud(msg).dropped
+            else:
+                dropped = pipeline.receive_odometry(msg).dropped
+            if dropped is not None:  # as the node drops it
                 stats['dropped_clouds' if topic == POINTS else 'bad_odometry'] += 1
             yield from labelled()
         while pipeline.insert_waiting():  # the last sweeps, past the end of the odometry

@@ -33,19 +33,19 @@ from visualization_msgs.msg import MarkerArray
 
 from fhld_ros.detectors import make_detector
 from fhld_ros.errors import ConfigError
-from fhld_ros.pipeline import LanePipeline
+from fhld_ros.lane_output import LANE_TOPICS, lane_messages
+from fhld_ros.pipeline import Intake, LanePipeline
 from fhld_ros.ros import stop
 from fhld_ros.ros.declare import declare_detector_params, rcl_reason
 from fhld_ros.ros.diagnostics import NodeStats
 from fhld_ros.ros.executor import HandoffExecutor
 from fhld_ros.ros.odometry_wait import InputSilence, LateSweeps
-from msg_adapters.family import rclpy_family, stamp_to_ns
-from msg_adapters.lanes import lane_to_path_cdr, lanes_to_marker_array_cdr
+from msg_adapters.family import rclpy_family
 
 WARN_THROTTLE_SEC = 5.0
 QOS_CHECK_SEC = 1.0
-# Detection runs when a sweep at least 1 / rate_hz newer than the last detected one is in. The
-# cloud callback wakes it; the timer polls this often (ROS time) as a fallback.
+# Detection runs when one is due (LanePipeline.due_window). The cloud callback wakes it; the
+# timer polls this often (ROS time) as a fallback.
 POLL_HZ = 20.0
 GIL_SWITCH_SEC = 0.0005  # see main()
 FAMILY = rclpy_family()
@@ -60,8 +60,7 @@ class LaneDetectorNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('lane_detector', **kwargs)
         self.params = declare_detector_params(self)
-        self.pipeline = LanePipeline(self.params, make_detector(self.params),
-                                     detect_held_back=True)
+        self.pipeline = LanePipeline(self.params, make_detector(self.params))
         # logged once they proved usable: a bad value gives one line on stderr, nothing else
         self.get_logger().info(f'parameters: {self.params}')
         self.lock = threading.Lock()  # the pipeline: cloud / odometry callbacks vs detection
@@ -72,12 +71,7 @@ class LaneDetectorNode(Node):
         # odom_wait_sec of wall time (the pipeline's own bound needs newer messages). Not ROS
         # time: with use_sim_time it stops with the bag, the poll with it.
         self.silence = InputSilence(self.params.odom_wait_sec)
-        # rate_hz limits detections by sweep stamps, not by when the last detection ran: a
-        # limit on the clock phase-locked detections behind arrivals (measured: +40 ms of
-        # waiting per sweep).
-        self.min_interval_ns = int(0.9e9 / self.params.rate_hz)  # slack for stamp jitter
-        self.stats = NodeStats(self.min_interval_ns)
-        self.last_detected_stamp_ns: int | None = None
+        self.stats = NodeStats(self.pipeline.min_interval_ns)
         self._create_interfaces()
         # sweeps whose pose DDS lost go in extrapolated once late (odometry_wait.py)
         self.late_sweeps = LateSweeps(self.pipeline, self.lock, self.params.odom_wait_sec,
@@ -122,9 +116,10 @@ class LaneDetectorNode(Node):
             callback_group=odometry,  # (a best-effort publisher simply does not match it)
             event_callbacks=SubscriptionEventCallbacks(incompatible_qos=lambda info: None))
         out_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
-        self.lanes_pub = self.create_publisher(MarkerArray, p.lanes_topic, out_qos)
-        self.left_pub = self.create_publisher(Path, f'{p.lanes_topic}/ego_left', out_qos)
-        self.right_pub = self.create_publisher(Path, f'{p.lanes_topic}/ego_right', out_qos)
+        types = {'visualization_msgs/msg/MarkerArray': MarkerArray, 'nav_msgs/msg/Path': Path}
+        self.lane_pubs = {suffix: self.create_publisher(types[name], p.lanes_topic + suffix,
+                                                        out_qos)
+                          for suffix, name in LANE_TOPICS.items()}
         self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', out_qos)
         # Detection polls on ROS time (sim time for bags); housekeeping follows the wall, so
         # diagnostics keep coming when a bag stops.
@@ -169,6 +164,8 @@ class LaneDetectorNode(Node):
             self._subscribe_points(wanted)
 
     def _drop(self, what: str, exc: Exception) -> None:
+        """A message the pipeline dropped (bad input), or one that failed unexpectedly: counted,
+        warned about (throttled); the node goes on."""
         self.stats.error(what, exc)
         self.get_logger().warning(f'dropped {what.replace("_", " ")}: {exc}',
                                   throttle_duration_sec=WARN_THROTTLE_SEC)
@@ -186,8 +183,7 @@ class LaneDetectorNode(Node):
 
     def _report_odometry(self) -> None:
         """Warn (throttled) while sweeps go in without odometry; say when it is back."""
-        stopped = self.pipeline.odometry_stopped and self.pipeline.uses_odometry
-        if stopped:
+        if self.pipeline.lost_odometry:
             self.said_odometry_stopped = True
             self.get_logger().warning(
                 f'no odometry on {self.params.odom_topic} within odom_wait_sec '
@@ -202,15 +198,18 @@ class LaneDetectorNode(Node):
         self.silence.heard()
         try:
             with self.lock:
-                let_in = self.pipeline.add_odometry(msg)
-                self.late_sweeps.odometry_in(stamp_to_ns(msg.header.stamp), let_in,
-                                             time.monotonic())
-        except Exception as exc:  # a bad message never takes the node down
-            self._drop('bad_odometry', exc)
+                intake = self.pipeline.receive_odometry(msg)
+                if intake.stamp_ns is not None:
+                    self.late_sweeps.odometry_in(intake.stamp_ns, intake.let_in,
+                                                 time.monotonic())
+        except Exception as exc:  # an unexpected failure never takes the node down either
+            intake = Intake(dropped=exc)
+        if intake.dropped is not None:
+            self._drop('bad_odometry', intake.dropped)
             return
         if self.said_odometry_stopped:
             self._report_odometry()
-        if let_in:
+        if intake.let_in:
             # A sweep that came before the odometry of its stamp went in just now; without this
             # wake-up it waited for the next poll (measured: +31 ms on 1 sweep in 6).
             self.wake_detection.trigger()
@@ -221,13 +220,15 @@ class LaneDetectorNode(Node):
         self.stats.cloud_received(arrived)
         try:
             with self.lock:
-                self.pipeline.add_cloud(msg)
-                stamp = stamp_to_ns(msg.header.stamp)
-                self.stats.cloud_ingested(stamp, arrived, time.monotonic())
-                no_odometry = not self.pipeline.uses_odometry
-                self.late_sweeps.cloud_in(stamp, arrived)
+                intake = self.pipeline.receive_cloud(msg)
+                if intake.dropped is None:
+                    self.stats.cloud_ingested(intake.stamp_ns, arrived, time.monotonic())
+                    no_odometry = not self.pipeline.uses_odometry
+                    self.late_sweeps.cloud_in(intake.stamp_ns, arrived)
         except Exception as exc:
-            self._drop('bad_clouds', exc)
+            intake = Intake(dropped=exc)
+        if intake.dropped is not None:
+            self._drop('bad_clouds', intake.dropped)
             return
         self.wake_detection.trigger()
         self._report_odometry()
@@ -254,7 +255,7 @@ class LaneDetectorNode(Node):
     def expire_waiting(self) -> bool:
         """Sweeps still waiting for odometry after odom_wait_sec without any message go in
         now (per sweep where nothing covers them); True when any did."""
-        if not self.pipeline.pending or not self.silence.expired():
+        if not self.pipeline.waiting_stamps or not self.silence.expired():
             return False
         with self.lock:
             inserted = self.pipeline.expire_waiting()
@@ -266,24 +267,15 @@ class LaneDetectorNode(Node):
         try:
             start = time.monotonic()
             with self.lock:
-                newest, last = self.pipeline.grid.newest_stamp_ns, self.last_detected_stamp_ns
-                if newest is None or (last is not None and
-                                      0 <= newest - last < self.min_interval_ns):
-                    return False  # nothing new, or too soon after the last detected sweep
-                window = self.pipeline.take_window(
-                    None if last is None else last + self.min_interval_ns)
+                window = self.pipeline.due_window()
                 timed_out = self.pipeline.odometry_stopped  # (the first waited odom_wait_sec)
             if window is None:
                 return False
-            self.last_detected_stamp_ns = window.stamp_ns
             rastered = time.monotonic()
             out = self.pipeline.detect_window(window)
             detected = time.monotonic()
-            # CDR bytes written from the arrays: ~10x faster than building rclpy messages
-            self.lanes_pub.publish(lanes_to_marker_array_cdr(
-                out.stamp_ns, out.frame_id, out.lanes, out.confidences, out.ids, out.outline))
-            self.left_pub.publish(lane_to_path_cdr(out.stamp_ns, out.frame_id, out.ego_left))
-            self.right_pub.publish(lane_to_path_cdr(out.stamp_ns, out.frame_id, out.ego_right))
+            for suffix, cdr in lane_messages(out).items():
+                self.lane_pubs[suffix].publish(cdr)
             self.stats.detection_done(out.stamp_ns, start, rastered, detected, time.monotonic(),
                                       odometry_timed_out=timed_out)
             return True

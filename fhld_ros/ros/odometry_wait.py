@@ -135,8 +135,8 @@ class LateSweeps:
             self.thread.join(timeout=5)
 
     def cloud_in(self, stamp_ns: int, arrived: float) -> None:
-        """After pipeline.add_cloud (lock held): note the sweep if it waits."""
-        if self.pipeline.is_waiting(stamp_ns):
+        """After pipeline.receive_cloud took a sweep (lock held): note the sweep if it waits."""
+        if stamp_ns in self.pipeline.waiting_stamps:
             self.since[stamp_ns] = arrived
             with self.changed:
                 self.notified = True
@@ -145,7 +145,8 @@ class LateSweeps:
             self.lateness.came(0.0)  # its odometry was there first
 
     def odometry_in(self, stamp_ns: int, let_in: list[int], now: float) -> None:
-        """After pipeline.add_odometry (lock held), which let the sweeps `let_in` in."""
+        """After pipeline.receive_odometry took a pose (lock held); it let the sweeps
+        `let_in` in."""
         own_pose = self.lateness.pose(stamp_ns)
         for stamp in let_in:
             if stamp in self.since:
@@ -169,7 +170,7 @@ class LateSweeps:
         now = time.monotonic()
         patience = self.lateness.patience()
         with self.lock:
-            waiting = {w[0] for w in self.pipeline.pending}
+            waiting = set(self.pipeline.waiting_stamps)
             self.since = {s: t for s, t in self.since.items() if s in waiting}
             self.tried &= waiting
             untried = {s: t for s, t in self.since.items() if s not in self.tried}
