@@ -23,6 +23,22 @@ def wait_until(predicate: Callable[[], object], timeout: float, period: float = 
     return bool(predicate())
 
 
+def spin_in_background(node: rclpy.node.Node) -> tuple[SingleThreadedExecutor, threading.Thread]:
+    """Spin node in a daemon thread until its context shuts down (the end of the test)."""
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+
+    def spin() -> None:
+        try:
+            executor.spin()
+        except ExternalShutdownException:
+            pass
+
+    thread = threading.Thread(target=spin, daemon=True)
+    thread.start()
+    return executor, thread
+
+
 class NodeOutputs:
     """The lane_detector's outputs (/lanes, the ego Paths, /diagnostics) as a user's node sees
     them: plain rclpy subscriptions, spun by an executor in a background thread."""
@@ -36,16 +52,7 @@ class NodeOutputs:
         self.node.create_subscription(Path, 'lanes/ego_right', self.right.append, qos)
         self.node.create_subscription(DiagnosticArray, 'diagnostics', self.diagnostics.append,
                                       qos)
-        self.executor = SingleThreadedExecutor(context=context)
-        self.executor.add_node(self.node)
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
-
-    def _spin(self) -> None:
-        try:
-            self.executor.spin()
-        except ExternalShutdownException:
-            pass  # the context shut down: the end of the test
+        self.executor, self.thread = spin_in_background(self.node)
 
     def diagnostic_values(self) -> dict[str, str]:
         """Key -> value of the newest /diagnostics status ({} before the first)."""

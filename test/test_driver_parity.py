@@ -20,10 +20,9 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 from nav_msgs.msg import Path as PathMsg
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from ros_helpers import wait_until
+from ros_helpers import spin_in_background, wait_until
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
@@ -93,16 +92,7 @@ class RawOutputs:
         self.node.create_subscription(DiagnosticArray, 'diagnostics', lambda _: None, qos)
         self.points = self.node.create_publisher(PointCloud2, 'points', qos)
         self.odom = self.node.create_publisher(Odometry, 'odom', qos)
-        self.executor = SingleThreadedExecutor(context=context)
-        self.executor.add_node(self.node)
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
-
-    def _spin(self) -> None:
-        try:
-            self.executor.spin()
-        except ExternalShutdownException:
-            pass  # the context shut down: the end of the test
+        self.executor, self.thread = spin_in_background(self.node)
 
 
 def _handled(node: LaneDetectorNode) -> tuple[int, int]:
