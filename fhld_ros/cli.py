@@ -16,7 +16,7 @@ from fhld_ros.errors import ConfigError
 COMMANDS: dict[str, tuple[str, str]] = {
     'autolabel': ('fhld_ros.commands.autolabel',
                   '3D lane labels from 2D image lane labels and the LiDAR sweeps of a drive'),
-    'autolabel-eval': ('fhld_ros.evaluation.autolabel_drives',
+    'autolabel-eval': ('fhld_ros.commands.autolabel_eval',
                        'fhld autolabel on held-out simulated drives, scored against the 3D GT'),
     'bench': ('fhld_ros.commands.bench', 'time the pipeline stages on this machine (medians)'),
     'replay': ('fhld_ros.commands.replay', 'run the detector pipeline over a bag on bag time'),

@@ -17,9 +17,9 @@ from fhld_ros.bagio import read_messages
 from fhld_ros.camera.calibration import CameraCalibration
 from fhld_ros.camera.labels2d import read_label_dir, write_labels
 from fhld_ros.cli import main
+from fhld_ros.commands.autolabel_eval import perturb_labels, score_lane_map
 from fhld_ros.data.bag_source import LabelledBag, bag_samples
 from fhld_ros.data.cache import CacheSettings
-from fhld_ros.evaluation.autolabel_drives import perturb_labels, score_lane_map
 from fhld_ros.evaluation.evaluate import evaluate_bags, summary
 from fhld_ros.sim.camera import SimCamera
 from fhld_ros.sim.simulator import Simulator

@@ -118,6 +118,8 @@ def _group(module: str) -> str:
     parts = module.split('.')
     if parts[0] == 'msg_adapters':
         return 'msg_adapters'
+    if module == 'fhld_ros.cli':  # it runs any subcommand: calling it is using commands
+        return 'commands'
     packages = {name for layer in LAYERS for name in layer}
     return parts[1] if len(parts) > 1 and parts[1] in packages else 'core'
 

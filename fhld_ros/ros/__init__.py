@@ -1,2 +1,3 @@
-"""ROS 2 plumbing: the lane_detector node, its diagnostics, executor and parameters, `fhld play`,
-and the DDS environment that keeps traffic on loopback. Importing this package needs no rclpy."""
+"""ROS 2 plumbing: the lane_detector node, its diagnostics, executor and parameter declarations,
+`fhld play`, and the DDS environment that keeps traffic on loopback. Importing this package
+needs no rclpy."""
