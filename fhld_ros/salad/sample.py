@@ -1,0 +1,37 @@
+"""One camera image with its 3D lanes: what SALAD trains and is scored on, whatever the source
+(the simulator, `fhld autolabel` bags, ONCE-3DLanes or OpenLane files)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class CameraLaneSample:
+    """image: (H, W, 3) uint8 RGB. intrinsics: (3, 3) K of that image (pixel (0, 0)'s centre at
+    u = v = 0). lanes: (N, 3) float64 polylines in the camera optical frame (x right, y down, z
+    forward, metres), each ordered near to far, only what the image shows. name: where it came
+    from (a file, a seed), for messages."""
+
+    image: np.ndarray
+    intrinsics: np.ndarray
+    lanes: list[np.ndarray] = field(default_factory=list)
+    name: str = ''
+
+    def __post_init__(self) -> None:
+        image = np.asarray(self.image)
+        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+            raise ValueError(f'{self.name or "sample"}: image must be (H, W, 3) uint8, got '
+                             f'{image.shape} {image.dtype}')
+        k = np.asarray(self.intrinsics, dtype=np.float64)
+        if k.shape != (3, 3) or not np.isfinite(k).all() or k[0, 0] <= 0 or k[1, 1] <= 0:
+            raise ValueError(f'{self.name or "sample"}: intrinsics must be a finite 3x3 K with '
+                             f'positive focal lengths, got {k.tolist()}')
+        self.image, self.intrinsics = image, k
+        self.lanes = [np.asarray(lane, dtype=np.float64).reshape(-1, 3) for lane in self.lanes]
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height) in pixels."""
+        return self.image.shape[1], self.image.shape[0]
