@@ -1,0 +1,126 @@
+"""From SALAD's maps to 3D lanes (paper §4.4): lane cells, moved by their offsets, given depth
+by the row shift and scale, back-projected with the virtual camera's intrinsics, grouped into
+lanes and fitted.
+
+Grouping happens in 3D, row by row from the bottom of the image up: each row's runs of lane
+cells are one point each, and a point joins the lane whose lateral position (x, metres) it
+continues. Far away lanes converge in the image and their cells touch, but in 3D they stay
+metres apart, so grouping there does not merge them as connected components would.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from fhld_ros.salad.config import STRIDE, SaladConfig
+
+MIN_DEPTH_M = 1.0
+LINK_M = 0.8  # a point continues a lane within this lateral distance (metres) ...
+LINK_FRACTION = 0.04  # ... or this share of its depth, when that is more
+GAP_ROWS = 8  # a lane waits this many rows for its next point (dashes, occlusions)
+HEADING_M = 3.0  # a lane's lateral slope is measured over its last this many metres
+MIN_POINTS = 4
+MIN_LENGTH_M = 2.0
+SAMPLE_STEP_M = 0.5  # fitted lanes are sampled every this much depth
+MAX_DEGREE = 3
+
+
+def lane_points(prob: np.ndarray, spatial: np.ndarray, cfg: SaladConfig) -> np.ndarray:
+    """(P, 5) points (x, y, z, probability, row) in the optical frame, one per run of lane
+    cells in a row, bottom rows first."""
+    h, w = prob.shape
+    mask = prob > cfg.seg_threshold
+    starts = mask & ~np.pad(mask, ((0, 0), (1, 0)))[:, :-1]
+    run = (np.cumsum(starts.ravel()) - 1).reshape(h, w)[mask]
+    if not len(run):
+        return np.zeros((0, 5))
+    rows, cols = np.nonzero(mask)
+    p = prob[mask]
+    shift = np.asarray(cfg.row_shift)[rows]
+    scale = np.asarray(cfg.row_scale)[rows]
+    cam = cfg.camera
+    u = (cols + spatial[0][mask] + 0.5) * STRIDE - 0.5
+    v = (rows + spatial[1][mask] + 0.5) * STRIDE - 0.5
+    z = shift + scale * spatial[2][mask]
+    count = np.bincount(run, weights=p)
+
+    def mean(values: np.ndarray) -> np.ndarray:
+        return np.bincount(run, weights=values * p) / count
+
+    # each cell back-projected on its own, then averaged: a cell row near the horizon spans
+    # tens of metres of a lane, and the mean of u times the mean of z is not on it
+    cells = np.bincount(run)
+    out = np.column_stack([mean((u - cam.cx) * z / cam.focal), mean((v - cam.cy) * z / cam.focal),
+                           mean(z), count / cells, np.bincount(run, weights=rows) / cells])
+    keep = (out[:, 2] > MIN_DEPTH_M) & (out[:, 2] < cfg.max_depth_m)
+    out = out[keep]
+    return out[np.argsort(-out[:, 4], kind='stable')]
+
+
+def group_points(points: np.ndarray) -> list[np.ndarray]:
+    """Indices of the points of each lane (see the module doc). A loop over rows, each with a
+    few runs: the cells themselves were reduced to runs without Python loops."""
+    lanes: list[list[int]] = []
+    last_row: list[float] = []
+    for row in np.unique(points[:, 4])[::-1]:
+        here = np.flatnonzero(points[:, 4] == row)
+        alive = [i for i, r in enumerate(last_row) if r - row <= GAP_ROWS]
+        used_points: set[int] = set()
+        used_lanes: set[int] = set()
+        if alive:
+            ends = np.array([_heading(points[lanes[i]]) for i in alive])  # (x, z, dx/dz)
+            reach = np.maximum(LINK_M, LINK_FRACTION * points[here, 2])
+            ahead = ends[None, :, 0] + ends[None, :, 2] * (points[here, 2][:, None]
+                                                          - ends[None, :, 1])
+            cost = np.abs(points[here, 0][:, None] - ahead)
+            for flat in np.argsort(cost, axis=None):  # greedy, nearest pairs first
+                a, b = divmod(int(flat), len(alive))
+                if cost[a, b] > reach[a] or a in used_points or b in used_lanes:
+                    continue
+                lanes[alive[b]].append(int(here[a]))
+                last_row[alive[b]] = row
+                used_points.add(a)
+                used_lanes.add(b)
+        for a in range(len(here)):
+            if a not in used_points:
+                lanes.append([int(here[a])])
+                last_row.append(row)
+    return [np.array(lane) for lane in lanes]
+
+
+def _heading(lane: np.ndarray) -> tuple[float, float, float]:
+    """A lane's last point (x, z) and its lateral slope dx/dz over the last HEADING_M."""
+    x, z = lane[-1, 0], lane[-1, 2]
+    back = np.flatnonzero(lane[:, 2] <= z - HEADING_M)
+    if not len(back):
+        return x, z, 0.0
+    i = back[-1]
+    return x, z, (x - lane[i, 0]) / (z - lane[i, 2])
+
+
+def fit_lane(points: np.ndarray) -> np.ndarray | None:
+    """x(z) and y(z) polynomials through a lane's points (probability-weighted), sampled
+    near to far; None for too few points or too short a lane."""
+    z = points[:, 2]
+    if len(points) < MIN_POINTS or np.ptp(z) < MIN_LENGTH_M:
+        return None
+    degree = min(MAX_DEGREE, len(points) // 3)
+    weight = np.sqrt(points[:, 3])
+    fx = np.polynomial.Polynomial.fit(z, points[:, 0], degree, w=weight)
+    fy = np.polynomial.Polynomial.fit(z, points[:, 1], degree, w=weight)
+    zs = np.append(np.arange(z.min(), z.max(), SAMPLE_STEP_M), z.max())
+    return np.column_stack([fx(zs), fy(zs), zs])
+
+
+def decode(prob: np.ndarray, spatial: np.ndarray, cfg: SaladConfig
+           ) -> tuple[list[np.ndarray], np.ndarray]:
+    """Lanes ((N, 3) optical frame, near to far) and their scores (mean cell probability)
+    from one image's maps: prob (h, w) in [0, 1], spatial (3, h, w)."""
+    points = lane_points(prob, spatial, cfg)
+    lanes, scores = [], []
+    for index in group_points(points):
+        lane = fit_lane(points[index])
+        score = float(points[index, 3].mean())
+        if lane is not None and score >= cfg.score_threshold:
+            lanes.append(lane)
+            scores.append(score)
+    return lanes, np.asarray(scores, dtype=np.float64)

@@ -1,0 +1,130 @@
+"""SALAD's geometry and learning pieces: the virtual camera, augmentation that keeps image and
+3D labels consistent, targets that decode back to their lanes, and a model that learns."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from fhld_ros.salad.augment import flip, zoom
+from fhld_ros.salad.config import SaladConfig
+from fhld_ros.salad.decode import decode
+from fhld_ros.salad.losses import SaladCriterion
+from fhld_ros.salad.model import SaladNet
+from fhld_ros.salad.targets import lane_targets, row_statistics
+from fhld_ros.salad.virtual_camera import VirtualCamera
+
+CAMERA = VirtualCamera()
+
+
+def _project(k: np.ndarray, point: np.ndarray) -> np.ndarray:
+    return (k @ point)[:2] / point[2]
+
+
+def _dot(size: tuple[int, int], uv: np.ndarray, sigma: float = 2.0) -> np.ndarray:
+    """A bright Gaussian dot centred at pixel coordinates uv on black."""
+    w, h = size
+    u, v = np.meshgrid(np.arange(w), np.arange(h))
+    blob = np.exp(-((u - uv[0]) ** 2 + (v - uv[1]) ** 2) / (2 * sigma ** 2))
+    return np.repeat((blob * 255).astype(np.uint8)[..., None], 3, axis=2)
+
+
+def _peak(image: np.ndarray) -> np.ndarray:
+    """Sub-pixel centroid of the bright dot."""
+    weight = image[..., 0].astype(np.float64)
+    weight[weight < 0.3 * weight.max()] = 0
+    v, u = np.nonzero(weight)
+    return np.array([np.average(u, weights=weight[v, u]), np.average(v, weights=weight[v, u])])
+
+
+def test_a_point_lands_where_the_virtual_camera_sees_it_whatever_the_source_camera():
+    point = np.array([1.3, 1.5, 12.0])
+    for k, size in ((np.array([[600.0, 0, 470], [0, 600, 290], [0, 0, 1]]), (960, 600)),
+                    (np.array([[1200.0, 0, 980], [0, 1180, 610], [0, 0, 1]]), (1920, 1280)),
+                    (np.array([[250.0, 0, 160], [0, 250, 100], [0, 0, 1]]), (320, 200))):
+        warped = CAMERA.warp(_dot(size, _project(k, point), sigma=0.01 * k[0, 0]), k)
+        assert warped.shape == (CAMERA.height, CAMERA.width, 3)
+        np.testing.assert_allclose(_peak(warped), _project(CAMERA.intrinsics, point), atol=0.5)
+
+
+def test_flip_and_zoom_move_the_image_and_the_3d_lane_alike():
+    point = np.array([-2.0, 1.6, 15.0])
+    image = _dot((CAMERA.width, CAMERA.height), _project(CAMERA.intrinsics, point))
+    for s in (0.85, 1.0, 1.25):
+        zoomed, (moved,) = zoom(image, [point[None]], CAMERA, s)
+        np.testing.assert_allclose(moved[0], [-2.0, 1.6, 15.0 / s])
+        np.testing.assert_allclose(_peak(zoomed), _project(CAMERA.intrinsics, moved[0]),
+                                   atol=0.3)
+    flipped, (mirrored,) = flip(image, [point[None]])
+    np.testing.assert_allclose(_peak(flipped), _project(CAMERA.intrinsics, mirrored[0]),
+                               atol=0.3)
+
+
+def _road(curvature: float = 0.0) -> list[np.ndarray]:
+    z = np.linspace(3.0, 70.0, 1000)
+    return [np.column_stack([x0 + curvature * z ** 2, 1.6 + 0.01 * z, z])
+            for x0 in (-5.25, -1.75, 1.75, 5.25)]
+
+
+def _config_for(depths: np.ndarray, masks: np.ndarray) -> SaladConfig:
+    shift, scale = row_statistics(depths, masks)
+    return dataclasses.replace(SaladConfig(camera=CAMERA), row_shift=tuple(shift),
+                               row_scale=tuple(scale))
+
+
+def test_perfect_maps_decode_to_the_lanes_they_were_made_from():
+    lanes = _road()
+    targets = lane_targets(lanes, CAMERA)
+    cfg = _config_for(targets.depth[None], targets.depth_mask[None])
+    shift, scale = np.array(cfg.row_shift)[:, None], np.array(cfg.row_scale)[:, None]
+    residual = (targets.depth - shift) / scale
+    decoded, scores = decode(targets.seg * 0.9, np.concatenate([targets.offsets,
+                                                                residual[None]]), cfg)
+    assert len(decoded) == 4 and np.allclose(scores, 0.9)
+    trees = [cKDTree(lane) for lane in lanes]
+    for lane in decoded:
+        error = min(tree.query(lane)[0].mean() for tree in trees)
+        assert error < 0.05, error
+        assert lane[0, 2] < 10 and lane[-1, 2] > 50  # near to far, up to the range
+
+
+def test_dense_depth_fills_between_the_lanes_as_the_ground_does():
+    targets = lane_targets(_road(), CAMERA)
+    rows, cols = np.nonzero(targets.depth_mask & (targets.seg == 0))
+    # a plane 1.6 m below the camera, rising 1 cm per metre: z = f h / (v - cy - 0.01 f) at
+    # the cell centre; a cell row spans 4 px, so the lane points it took its depth from lie up
+    # to 2 px off (10 % of the depth at 20 m)
+    v = (rows + 0.5) * 4 - 0.5
+    near = targets.depth[rows, cols] < 20
+    expected = CAMERA.focal * 1.6 / (v - CAMERA.cy - CAMERA.focal * 0.01)
+    assert near.sum() > 1000
+    np.testing.assert_allclose(targets.depth[rows, cols][near], expected[near], rtol=0.1)
+
+
+def test_the_model_learns_a_road():
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    lanes = _road(0.001)
+    targets = lane_targets(lanes, CAMERA)
+    cfg = _config_for(targets.depth[None], targets.depth_mask[None])
+    # lane paint drawn where the targets say, on grey noise: learnable in a few steps
+    image = rng.integers(60, 90, (CAMERA.height, CAMERA.width, 3)).astype(np.uint8)
+    image[np.repeat(np.repeat(targets.seg > 0, 4, axis=0), 4, axis=1)] = 230
+    batch = {'seg': torch.from_numpy(targets.seg)[None],
+             'offsets': torch.from_numpy(targets.offsets)[None],
+             'depth': torch.from_numpy(targets.depth)[None],
+             'depth_mask': torch.from_numpy(targets.depth_mask)[None]}
+    model, criterion = SaladNet(cfg), SaladCriterion(cfg)
+    optimiser = torch.optim.AdamW(model.parameters(), lr=3e-3)
+    x = torch.from_numpy(image).permute(2, 0, 1)[None]
+    first = None
+    for _ in range(25):
+        losses = criterion(*model(x), batch)
+        optimiser.zero_grad()
+        losses['loss'].backward()
+        optimiser.step()
+        first = first if first is not None else float(losses['loss'].detach())
+    last = float(losses['loss'].detach())
+    assert np.isfinite(last) and last < 0.5 * first, (first, last)
