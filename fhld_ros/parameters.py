@@ -6,145 +6,105 @@ This module needs no rclpy: the pipeline and `fhld replay` use it too.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from fhld_ros.dataclass_dict import documented, from_dict
+from fhld_ros.dataclass_dict import documented, field_problems, from_dict
 from fhld_ros.errors import ConfigError
 from fhld_ros.model.config import FhldConfig
 
-# The values a string parameter takes, and every number's range, checked in one place:
-# (integer, low, low itself allowed, high). Upper bounds keep memory and time finite
-# (size_px = 100000 asked numpy for 75 GiB); they sit far above any useful setting.
-_CHOICES: dict[str, tuple[str, ...]] = {
-    'detector': ('fhld', 'classical'), 'device': ('cpu', 'cuda'),
-    'model_runtime': ('auto', 'onnxruntime', 'torchscript'),
-    'input_reliability': ('auto', 'reliable', 'best_effort'),
-}
-_RANGES: dict[str, tuple[bool, float, bool, float]] = {
-    'model_threads': (True, 0, True, 1024),
-    'score_threshold': (False, 0, True, 1),
-    'local_refine_steps': (True, 0, True, 64),
-    'evidence_reach_m': (False, 0, True, 100),
-    'min_paint_contrast': (False, 0, True, 100),
-    'size_px': (True, 32, True, 4096),  # FhldConfig's bound
-    'resolution_m': (False, 0, False, 10),
-    'accumulate_sec': (False, 0, True, 60),
-    'max_sweeps': (True, 1, True, 1000),
-    'rate_hz': (False, 0, False, 1000),
-    'max_points': (True, 0, False, 1 << 28),
-    'odom_wait_sec': (False, 0, True, 10),
-    'odom_extrapolate_sec': (False, 0, True, 0.5),
-    'intensity_scale': (False, 0, True, 1e9),
-}
-
-
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
-def _range_problem(name: str, value: Any) -> str | None:
-    """Why value is not in name's _RANGES range (None when it is)."""
-    integer, low, low_allowed, high = _RANGES[name]
-    if _is_number(value) and (isinstance(value, int) or not integer) and math.isfinite(value) \
-            and (low <= value if low_allowed else low < value) and value <= high:
-        return None
-    kind = 'an integer' if integer else 'a number'
-    return (f'{name} must be {kind} {">=" if low_allowed else ">"} {low:g} and <= {high:.10g}, '
-            f'not {value!r}')
+# Each field's range or choices sit beside its doc (dataclass_dict.documented). Upper bounds keep
+# memory and time finite (size_px = 100000 asked numpy for 75 GiB); they sit far above any
+# useful setting.
 
 
 @dataclass(frozen=True)
 class DetectorParams:
     """Every parameter of lane_detector; field metadata 'doc' is the ROS descriptor text."""
 
-    points_topic: str = documented('points', 'input sensor_msgs/PointCloud2 topic')
+    points_topic: str = documented('points', 'input sensor_msgs/PointCloud2 topic',
+                                   length='[1, inf)')
     odom_topic: str = documented(
-        'odom', 'input nav_msgs/Odometry topic; without messages the node works per sweep')
+        'odom', 'input nav_msgs/Odometry topic; without messages the node works per sweep',
+        length='[1, inf)')
     lanes_topic: str = documented(
-        'lanes', 'output MarkerArray topic; ego lane Paths go to <lanes_topic>/ego_left|right')
+        'lanes', 'output MarkerArray topic; ego lane Paths go to <lanes_topic>/ego_left|right',
+        length='[1, inf)')
     detector: str = documented(
-        'fhld', "'fhld' (the learned model) or 'classical' (rule-based baseline)")
+        'fhld', "'fhld' (the learned model) or 'classical' (rule-based baseline)",
+        choices=('fhld', 'classical'))
     checkpoint: str = documented(
         '', 'FHLD weights (.pt); empty = the shipped fhld_ros/checkpoints/fhld.pt')
-    device: str = documented('cpu', "'cpu' or 'cuda' for the model")
+    device: str = documented('cpu', "'cpu' or 'cuda' for the model", choices=('cpu', 'cuda'))
     model_threads: int = documented(
         0, 'CPU threads for the model; 0 = auto: one per core with ONNX Runtime, 1 with '
-        'TorchScript (whose OpenMP threads stalled beside the executor)')
+        'TorchScript (whose OpenMP threads stalled beside the executor)', range='[0, 1024]')
     model_runtime: str = documented(
         'auto', "how the model runs: 'auto' (ONNX Runtime on the CPU when installed, else "
-        "TorchScript), 'onnxruntime' (CPU) or 'torchscript'")
+        "TorchScript), 'onnxruntime' (CPU) or 'torchscript'",
+        choices=('auto', 'onnxruntime', 'torchscript'))
     score_threshold: float = documented(
         0.7, 'minimum lane confidence to publish (0.7, chosen on validation roads: fewer '
         'false lanes on unmarked roads, the same F1 on marked ones; higher trades true lanes '
-        'for fewer false ones)')
+        'for fewer false ones)', range='[0, 1]')
     refine_heights: bool = documented(
         True, 'FHLD lane heights follow the measured road surface (robust fit of the '
         "raster's minimum heights); false keeps the model's own heights")
     local_refine_steps: int = documented(
         FhldConfig.local_refine_steps, 'FHLD anchor cells re-centred on the segment they found '
-        'and classified again this many times (0 = on the global curves only)')
+        'and classified again this many times (0 = on the global curves only)', range='[0, 64]')
     evidence_reach_m: float = documented(
         1.5, 'FHLD lanes are cut where no return lies within this distance (m) in the window: '
-        'no lanes over ground the sensor never saw (0.0 = off)')
+        'no lanes over ground the sensor never saw (0.0 = off)', range='[0, 100]')
     min_paint_contrast: float = documented(
         1.3, 'FHLD lanes whose brightest returns are not this many times as bright as the road '
         'on each side of them (at their height) are dropped: no lanes along bare curbs, seams '
-        'or light strips (0.0 = off)')
-    size_px: int = documented(640, 'BEV window size in cells (square)')
-    resolution_m: float = documented(0.04, 'BEV cell size in metres')
+        'or light strips (0.0 = off)', range='[0, 100]')
+    size_px: int = documented(640, 'BEV window size in cells (square)',
+                              range='[32, 4096]')  # FhldConfig's bound
+    resolution_m: float = documented(0.04, 'BEV cell size in metres', range='(0, 10]')
     accumulate_sec: float = documented(
-        1.0, 'sweeps younger than this (relative to the newest) are accumulated')
-    max_sweeps: int = documented(10, 'at most this many sweeps are accumulated (memory bound)')
+        1.0, 'sweeps younger than this (relative to the newest) are accumulated',
+        range='[0, 60]')
+    max_sweeps: int = documented(10, 'at most this many sweeps are accumulated (memory bound)',
+                                 range='[1, 1000]')
     rate_hz: float = documented(
-        10.0, 'detection rate; the timer runs on ROS time (use_sim_time for bags)')
+        10.0, 'detection rate; the timer runs on ROS time (use_sim_time for bags)',
+        range='(0, 1000]')
     max_points: int = documented(
         1 << 20, 'clouds of more than this many points (height x width, read from the header '
         'before anything is allocated) are refused as bad clouds; 1048576 = 4 x a 128 x 2048 '
-        'sensor')
+        'sensor', range=f'(0, {1 << 28}]')
     odom_wait_sec: float = documented(
         1.0, 'a sweep newer than the newest odometry waits for it until a message stamped '
         'this much later arrives (live: or this long passes without any message); then it is '
-        'detected alone in the cloud frame, as are the next sweeps until odometry resumes')
+        'detected alone in the cloud frame, as are the next sweeps until odometry resumes',
+        range='[0, 10]')
     odom_extrapolate_sec: float = documented(
         0.2, 'live only: a sweep whose odometry is later than odometry usually is (a pose lost '
         'in DDS) goes in with the motion of the newest poses continued, when it lies at most '
-        'this far past the newest pose; 0 = it waits (odom_wait_sec)')
+        'this far past the newest pose; 0 = it waits (odom_wait_sec)', range='[0, 0.5]')
     intensity_scale: float = documented(
         0.0, 'checkpoints with absolute intensity only: full scale of the intensity field; '
-        '0 = infer per sweep (1, 255, 65535). Contrast-encoded weights need none')
+        '0 = infer per sweep (1, 255, 65535). Contrast-encoded weights need none',
+        range='[0, 1e9]')
     input_reliability: str = documented(
         'auto', "points subscription reliability: 'auto' (reliable, switching to best effort "
-        "while a best-effort publisher exists), 'reliable' or 'best_effort'")
+        "while a best-effort publisher exists), 'reliable' or 'best_effort'",
+        choices=('auto', 'reliable', 'best_effort'))
     lidar_to_base: tuple[float, ...] = documented(
         (0.0, 0.0, 0.0, 0.0, 0.0, 0.0), 'static cloud frame -> odometry child frame '
-        '[x, y, z, roll, pitch, yaw], used when the cloud frame differs from child_frame_id')
+        '[x, y, z, roll, pitch, yaw], used when the cloud frame differs from child_frame_id',
+        length=6)
 
     def __post_init__(self) -> None:
-        """ConfigError naming every value out of its range (all of them, in one line)."""
-        problems = []
-        for name, allowed in _CHOICES.items():
-            if getattr(self, name) not in allowed:
-                choices = ', '.join(repr(c) for c in allowed[:-1]) + f' or {allowed[-1]!r}'
-                problems.append(f'{name} must be {choices}, not {getattr(self, name)!r}')
+        """ConfigError naming every value out of its declared range (all of them, one line)."""
+        problems = field_problems(self)
         if self.model_runtime == 'onnxruntime' and self.device != 'cpu':
             problems.append("model_runtime 'onnxruntime' needs device 'cpu'")
-        if not isinstance(self.refine_heights, bool):
-            problems.append('refine_heights must be true or false')
-        for name in ('points_topic', 'odom_topic', 'lanes_topic'):
-            if not (isinstance(getattr(self, name), str) and getattr(self, name)):
-                problems.append(f'{name} must be a topic name, not {getattr(self, name)!r}')
-        if not isinstance(self.checkpoint, str):
-            problems.append(f'checkpoint must be a path, not {self.checkpoint!r}')
-        problems += [p for name in _RANGES if (p := _range_problem(name, getattr(self, name)))]
-        if not (isinstance(self.lidar_to_base, tuple) and len(self.lidar_to_base) == 6 and all(
-                _is_number(v) and math.isfinite(v) for v in self.lidar_to_base)):
-            problems.append('lidar_to_base must be 6 finite numbers [x, y, z, roll, pitch, yaw], '
-                            f'not {self.lidar_to_base!r}')
         if problems:
             raise ConfigError('; '.join(problems))
 

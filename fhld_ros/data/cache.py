@@ -42,7 +42,8 @@ from tqdm import tqdm
 from fhld_ros.bev import BevSpec
 from fhld_ros.data.samples import TrainingSample, training_samples
 from fhld_ros.data.variation import SHARES, sensor_variation, variation_record
-from fhld_ros.dataclass_dict import to_plain
+from fhld_ros.dataclass_dict import check_fields, documented, to_plain
+from fhld_ros.errors import ConfigError
 from fhld_ros.intensity import CONTRAST, INTENSITY_ENCODINGS
 from fhld_ros.sim.layout import TOPOLOGIES
 from fhld_ros.sim.lidar import SENSORS, SPINNING
@@ -60,43 +61,43 @@ INDEX_NAME = 'cache.json'
 class CacheSettings:
     """Everything that determines a shard's content besides its seed."""
 
-    windows_per_seed: int = 8
-    size_px: int = 640
-    resolution_m: float = 0.04
-    sweeps_per_sample: int = 10  # sweeps accumulated per window (1 s at 10 Hz)
-    stride: int = 10  # sweeps between windows (== sweeps_per_sample: no sweep is reused)
-    sensors: tuple[str, ...] = ALL_SENSORS
-    topologies: tuple[str | None, ...] = ALL_TOPOLOGIES
-    odom_noise_max: float = 1.0  # half the seeds drive with drift U(0, max), half exact
-    motion_distortion_prob: float = 0.25
-    intensity_encoding: str = CONTRAST  # the model's (FhldConfig.intensity_encoding)
-    sensor_variation: bool = False  # training seeds only: sensor_variation() drawn per seed
-    road_look: bool = False  # sensor_variation also draws pavements and mount tilt
-    bare_curbs: bool = False  # sensor_variation also draws roads without lines along the curbs
-    laser_gains: bool = False  # sensor_variation also draws per-laser gain spread (variation.py)
-    # sensor_variation's shares of the seeds (variation.py): roads without any paint, windows of
-    # one sweep without odometry, KITTI-like bright pavement (with road_look)
-    no_markings_share: float = SHARES['no_markings_share']
-    single_sweep_share: float = SHARES['single_sweep_share']
-    bright_asphalt_share: float = SHARES['bright_asphalt_share']
+    windows_per_seed: int = documented(8, 'windows cut from each seed\'s drive', range='[1, inf)')
+    size_px: int = documented(640, 'raster side, cells', range='[1, inf)')
+    resolution_m: float = documented(0.04, 'raster cell size, m', range='(0, inf)')
+    sweeps_per_sample: int = documented(10, 'sweeps accumulated per window (1 s at 10 Hz)',
+                                        range='[1, inf)')
+    stride: int = documented(10, 'sweeps between windows (== sweeps_per_sample: no sweep is '
+                             'reused)', range='[1, inf)')
+    sensors: tuple[str, ...] = documented(ALL_SENSORS, 'sensor presets the seeds cycle through',
+                                          choices=SENSORS, length='[1, inf)')
+    topologies: tuple[str | None, ...] = documented(
+        ALL_TOPOLOGIES, "road topologies the seeds cycle through (None: the layout's own)",
+        choices=ALL_TOPOLOGIES, length='[1, inf)')
+    odom_noise_max: float = documented(1.0, 'half the seeds drive with drift U(0, max), half '
+                                       'exact', range='[0, inf)')
+    motion_distortion_prob: float = documented(0.25, 'share of the seeds whose sweeps are '
+                                               'motion-distorted', range='[0, 1]')
+    intensity_encoding: str = documented(CONTRAST, "the model's (FhldConfig.intensity_encoding)",
+                                         choices=INTENSITY_ENCODINGS)
+    sensor_variation: bool = documented(False, 'training seeds only: sensor_variation() drawn '
+                                        'per seed')
+    road_look: bool = documented(False, 'sensor_variation also draws pavements and mount tilt')
+    bare_curbs: bool = documented(False, 'sensor_variation also draws roads without lines along '
+                                  'the curbs')
+    laser_gains: bool = documented(False, 'sensor_variation also draws per-laser gain spread '
+                                   '(variation.py)')
+    # sensor_variation's shares of the seeds (variation.py)
+    no_markings_share: float = documented(SHARES['no_markings_share'], 'roads without any '
+                                          'paint', range='[0, 1]')
+    single_sweep_share: float = documented(SHARES['single_sweep_share'], 'windows of one sweep '
+                                           'without odometry', range='[0, 1]')
+    bright_asphalt_share: float = documented(SHARES['bright_asphalt_share'], 'KITTI-like bright '
+                                             'pavement (with road_look)', range='[0, 1]')
 
-    def validate(self) -> None:
-        unknown = [s for s in self.sensors if s not in SENSORS]
-        if unknown or not self.sensors:
-            raise ValueError(f'unknown sensors {unknown} (choose from {", ".join(SENSORS)})')
-        bad = [t for t in self.topologies if t is not None and t not in TOPOLOGIES]
-        if bad or not self.topologies:
-            raise ValueError(f'unknown topologies {bad} (choose from none, '
-                             f'{", ".join(TOPOLOGIES)})')
-        if self.windows_per_seed < 1 or self.sweeps_per_sample < 1 or self.stride < 1:
-            raise ValueError('windows_per_seed, sweeps_per_sample and stride must be >= 1')
-        if self.size_px < 1 or not self.resolution_m > 0:
-            raise ValueError('size_px must be >= 1 and resolution_m > 0')
-        if self.intensity_encoding not in INTENSITY_ENCODINGS:
-            raise ValueError(f'unknown intensity encoding {self.intensity_encoding!r}')
-        for name in SHARES:
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f'{name} must be in 0..1, got {getattr(self, name)}')
+    def validate(self, where: str = '', names: dict[str, str] | None = None) -> None:
+        """ConfigError naming every unusable setting (as `where.name`, or the name `names`
+        gives it)."""
+        check_fields(self, where, names)
 
     @property
     def sweeps_per_seed(self) -> int:
@@ -245,7 +246,7 @@ def _check_index(out_dir: Path, settings: CacheSettings) -> None:
             diff = {k: (stored.get('settings', {}).get(k), v)
                     for k, v in wanted['settings'].items()
                     if stored.get('settings', {}).get(k) != v}
-            raise ValueError(f'cache {out_dir} was built with other settings '
+            raise ConfigError(f'cache {out_dir} was built with other settings '
                              f'(stored, requested): {diff or stored}; use another directory')
         return
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -7,82 +7,114 @@ Pixel quantities (cell size r, anchor noise) are in raster pixels of the configu
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
-from fhld_ros.dataclass_dict import from_dict, to_plain
+from fhld_ros.dataclass_dict import check_fields, documented, from_dict, to_plain
+from fhld_ros.errors import ConfigError
 from fhld_ros.intensity import INTENSITY_ENCODINGS
+
+MAX_WIDTH = 4096  # channels of any layer
+# Every field is bounded, generously (far above any real model), so a hostile checkpoint config
+# is refused before a model is built (d_model = 2**20 would ask for terabytes).
+WIDTH = f'[1, {MAX_WIDTH}]'
+LAYERS = '[0, 64]'
+WEIGHT = '[0, inf)'  # loss weights, distances, ratios
 
 
 @dataclass(frozen=True)
 class FhldConfig:
-    # Raster the checkpoint expects (fhld_ros/bev.py): 640 px at 4 cm = 25.6 m window.
-    size_px: int = 640
-    resolution_m: float = 0.04
-    in_channels: int = 4
-    # How channel 0 reads intensity (fhld_ros/intensity.py): 'contrast' against each sweep's
-    # ground, the same on every sensor; 'absolute' for weights trained on full-scale intensity.
-    intensity_encoding: str = 'contrast'
+    """Every hyper-parameter; each field's doc and the values it takes (dataclass_dict)."""
+
+    size_px: int = documented(640, 'raster side the checkpoint expects (bev.py), cells; a '
+                              'multiple of 32', range='[32, 4096]')
+    resolution_m: float = documented(0.04, 'raster cell size, m (640 px at 4 cm = 25.6 m)',
+                                     range='(0, inf)')
+    in_channels: int = documented(4, 'raster channels', range='[1, 64]')
+    intensity_encoding: str = documented(
+        'contrast', "how channel 0 reads intensity (intensity.py): 'contrast' against each "
+        "sweep's ground, the same on every sensor; 'absolute' for weights trained on "
+        'full-scale intensity', choices=INTENSITY_ENCODINGS)
 
     # Backbone: slim ResNet-18 (paper widths) + self-attention on the stride-32 map.
-    widths: tuple[int, ...] = (16, 32, 64, 128)
-    blocks_per_stage: int = 2
-    stem_kernel: int = 3              # stem conv k x k, stride 2, + max-pool; ResNet: 7 (+9 ms)
-    backbone_attention_layers: int = 1
+    widths: tuple[int, ...] = documented((16, 32, 64, 128), 'channels of the 4 ResNet stages',
+                                         range=WIDTH, length=4)
+    blocks_per_stage: int = documented(2, 'residual blocks per stage', range='[1, 64]')
+    stem_kernel: int = documented(3, 'stem conv k x k, stride 2, + max-pool; ResNet: 7 (+9 ms)',
+                                  range='[1, 15]')
+    backbone_attention_layers: int = documented(1, 'self-attention layers on the stride-32 map',
+                                                range=LAYERS)
 
     # Global branch (DETR-like); the authors' release uses d=128, 4 heads, 3 + 3 layers.
-    d_model: int = 128
-    n_heads: int = 4
-    ffn_dim: int = 256
-    enc_layers: int = 3
-    dec_layers: int = 3
-    dropout: float = 0.0
-    num_queries: int = 15
+    d_model: int = documented(128, 'transformer width; a multiple of n_heads', range=WIDTH)
+    n_heads: int = documented(4, 'attention heads', range='[1, 256]')
+    ffn_dim: int = documented(256, 'transformer feed-forward width',
+                              range=f'[1, {4 * MAX_WIDTH}]')
+    enc_layers: int = documented(3, 'transformer encoder layers', range=LAYERS)
+    dec_layers: int = documented(3, 'transformer decoder layers', range='[1, 64]')
+    dropout: float = documented(0.0, 'transformer dropout', range='[0, 1)')
+    num_queries: int = documented(15, 'lane queries', range='[1, 1000]')
 
     # Local branch: features F'' at local_stride, RoIAlign roi_size x roi_size bins per cell.
-    local_stride: int = 8
-    local_channels: int = 32
-    roi_size: int = 4
-    roi_sampling: int = 1             # 1 = torchvision adaptive for r = 4 cells of stride 8
-    local_hidden: int = 128
+    local_stride: int = documented(8, "stride of the local branch's features F''",
+                                   choices=(4, 8, 16, 32))
+    local_channels: int = documented(32, "channels of F''", range=WIDTH)
+    roi_size: int = documented(4, 'RoIAlign bins per cell side', range='[1, 64]')
+    roi_sampling: int = documented(1, 'RoIAlign samples per bin; 1 = torchvision adaptive for '
+                                   'r = 4 cells of stride 8', range='[1, 16]')
+    local_hidden: int = documented(128, 'hidden width of the local head', range=WIDTH)
 
     # Anchor cells: r x r px, B cells per matched lane when training (paper: r=32, B=40).
-    cell_px: int = 32
-    cells_per_lane: int = 40
-    negative_ratio: float = 0.25      # negatives sampled around positives, per positive
-    noise_px: float = 4.0             # std of the position noise on positive anchors
-    infer_spacing_px: float = 24.0    # inference: base spacing of cells along a curve
-    curvature_ref: float = 0.05       # 1/m; curvature that doubles the inference density
-    infer_min_cells: int = 4
-    infer_max_cells: int = 60
-    min_segment_frac: float = 0.2     # a cell is positive if its GT segment is >= this * r
-    bar_width_m: float = 0.15         # w_l; the Gaussian uses 2 * w_l across the segment
-    local_score_threshold: float = 0.5
-    # Inference: each cell is moved to the segment centre it predicted and classified again,
-    # this many times. Training places cells within ~0.3 m of a lane (curve error + noise);
-    # a global curve 0.5-1 m off leaves its cells where the head rejects the segment it still
-    # locates (docs/accuracy.md). Inference only: any checkpoint.
-    local_refine_steps: int = 2
+    cell_px: int = documented(32, 'anchor cell side r, px; at most size_px', range='[1, 4096]')
+    cells_per_lane: int = documented(40, 'training anchor cells B per matched lane',
+                                     range='[1, 1000]')
+    negative_ratio: float = documented(0.25, 'negatives sampled around positives, per positive',
+                                       range=WEIGHT)
+    noise_px: float = documented(4.0, 'std of the position noise on positive anchors, px',
+                                 range=WEIGHT)
+    infer_spacing_px: float = documented(24.0, 'inference: base spacing of cells along a '
+                                         'curve, px', range=WEIGHT)
+    curvature_ref: float = documented(0.05, 'curvature (1/m) that doubles the inference '
+                                      'density', range=WEIGHT)
+    infer_min_cells: int = documented(4, 'inference: fewest cells per curve; at most '
+                                      'infer_max_cells', range='[1, 1000]')
+    infer_max_cells: int = documented(60, 'inference: most cells per curve', range='[1, 1000]')
+    min_segment_frac: float = documented(0.2, 'a cell is positive if its GT segment is >= this '
+                                         '* r', range=WEIGHT)
+    bar_width_m: float = documented(0.15, 'w_l; the Gaussian uses 2 * w_l across the segment',
+                                    range=WEIGHT)
+    local_score_threshold: float = documented(0.5, 'local head score a cell needs',
+                                              range=WEIGHT)
+    # Training places cells within ~0.3 m of a lane (curve error + noise); a global curve
+    # 0.5-1 m off leaves its cells where the head rejects the segment it still locates
+    # (docs/accuracy.md). Inference only: any checkpoint.
+    local_refine_steps: int = documented(
+        2, 'inference: each cell is moved to the segment centre it predicted and classified '
+        'again, this many times', range=LAYERS)
 
     # Ablation flags (paper Table 2) and training switches.
-    adaptive_axis: bool = True        # False: cubic w.r.t. the window x axis
-    shape_matching: bool = True       # False: L1 point regression of the segment centre
-    smoothness_loss: bool = True      # L_sm on second differences
-    anchor_noise: bool = True         # position noise on training anchors
-    anchors_on_gt: bool = False       # training anchors along GT instead of predicted curves
+    adaptive_axis: bool = documented(True, 'False: cubic w.r.t. the window x axis')
+    shape_matching: bool = documented(True, 'False: L1 point regression of the segment centre')
+    smoothness_loss: bool = documented(True, 'L_sm on second differences')
+    anchor_noise: bool = documented(True, 'position noise on training anchors')
+    anchors_on_gt: bool = documented(False, 'training anchors along GT instead of predicted '
+                                     'curves')
 
     # Losses: lambda1 (classification), lambda2 (KL), lambda3 (smoothness).
-    lambda1: float = 1.0
-    lambda2: float = 1.0
-    lambda3: float = 0.5
-    no_lane_weight: float = 1.0       # CE weight of the non-lane class
-    z_weight: float = 1.0             # weight of height errors relative to ground-plane ones
-    lsm_warmup: int = 2000            # iterations before L_LSM is optimised
-    aux_loss: bool = True             # supervise every decoder layer
-    match_class_weight: float = 1.0
-    match_terminal_weight: float = 1.0
-    gt_points: int = 100              # GT lanes are resampled to this many points
+    lambda1: float = documented(1.0, 'classification loss weight', range=WEIGHT)
+    lambda2: float = documented(1.0, 'KL (shape) loss weight', range=WEIGHT)
+    lambda3: float = documented(0.5, 'smoothness loss weight', range=WEIGHT)
+    no_lane_weight: float = documented(1.0, 'CE weight of the non-lane class', range=WEIGHT)
+    z_weight: float = documented(1.0, 'weight of height errors relative to ground-plane ones',
+                                 range=WEIGHT)
+    lsm_warmup: int = documented(2000, 'iterations before L_LSM is optimised',
+                                 range=f'[0, {10**9}]')
+    aux_loss: bool = documented(True, 'supervise every decoder layer')
+    match_class_weight: float = documented(1.0, 'matching cost of the class', range=WEIGHT)
+    match_terminal_weight: float = documented(1.0, 'matching cost of the end points',
+                                              range=WEIGHT)
+    gt_points: int = documented(100, 'GT lanes are resampled to this many points',
+                                range='[2, 10000]')
 
     @property
     def window_m(self) -> float:
@@ -106,61 +138,20 @@ class FhldConfig:
     def from_dict(cls, data: dict[str, Any]) -> FhldConfig:
         return from_dict(cls, data, where='the model config')
 
-    def validate(self) -> None:
-        """ValueError naming the first unusable value. Every size is bounded (generously: far
-        above any real model) so a hostile checkpoint config is refused before a model is
-        built (d_model = 2**20 would ask for terabytes)."""
-        for name, (low, high) in _INT_BOUNDS.items():
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
-                raise ValueError(f'{name} must be an integer in [{low}, {high}], got {value!r}')
-        for name in _FLOAT_FIELDS:
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
-                    math.isfinite(value) and value >= 0):
-                raise ValueError(f'{name} must be a finite number >= 0, got {value!r}')
-        for name in _BOOL_FIELDS:
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(f'{name} must be true or false, got {getattr(self, name)!r}')
-        widths = self.widths
-        if not isinstance(widths, (tuple, list)) or len(widths) != 4 or not all(
-                isinstance(w, int) and not isinstance(w, bool) and 1 <= w <= MAX_WIDTH
-                for w in widths):
-            raise ValueError(f'widths must be 4 integers in [1, {MAX_WIDTH}], got {widths!r}')
-        if self.intensity_encoding not in INTENSITY_ENCODINGS:
-            raise ValueError(f'intensity_encoding must be one of '
-                             f'{", ".join(INTENSITY_ENCODINGS)}, got {self.intensity_encoding!r}')
+    def validate(self, where: str = '') -> None:
+        """ConfigError naming every unusable value (fields as `where.name`)."""
+        check_fields(self, where)
+        at = f'{where}.' if where else ''
+        problems = []
         if self.size_px % 32:
-            raise ValueError(f'size_px must be a multiple of 32, got {self.size_px}')
-        if self.local_stride not in (4, 8, 16, 32):
-            raise ValueError(f'local_stride must be 4, 8, 16 or 32, got {self.local_stride}')
+            problems.append(f'{at}size_px must be a multiple of 32, not {self.size_px}')
         if self.d_model % self.n_heads:
-            raise ValueError('d_model must be divisible by n_heads')
-        if not self.resolution_m > 0:
-            raise ValueError(f'resolution_m must be > 0, got {self.resolution_m}')
-        if not self.dropout < 1:
-            raise ValueError(f'dropout must be < 1, got {self.dropout}')
+            problems.append(f'{at}d_model {self.d_model} must be a multiple of {at}n_heads '
+                            f'{self.n_heads}')
         if self.cell_px > self.size_px:
-            raise ValueError(f'cell_px {self.cell_px} exceeds size_px {self.size_px}')
+            problems.append(f'{at}cell_px {self.cell_px} exceeds {at}size_px {self.size_px}')
         if self.infer_min_cells > self.infer_max_cells:
-            raise ValueError('infer_min_cells must be <= infer_max_cells')
-
-
-MAX_WIDTH = 4096  # channels of any layer
-# Inclusive bounds of the integer fields: generous, far above any real model.
-_INT_BOUNDS: dict[str, tuple[int, int]] = {
-    'size_px': (32, 4096), 'in_channels': (1, 64), 'blocks_per_stage': (1, 64),
-    'stem_kernel': (1, 15), 'backbone_attention_layers': (0, 64), 'd_model': (1, MAX_WIDTH),
-    'n_heads': (1, 256), 'ffn_dim': (1, 4 * MAX_WIDTH), 'enc_layers': (0, 64),
-    'dec_layers': (1, 64), 'num_queries': (1, 1000), 'local_stride': (4, 32),
-    'local_channels': (1, MAX_WIDTH), 'roi_size': (1, 64), 'roi_sampling': (1, 16),
-    'local_hidden': (1, MAX_WIDTH), 'cell_px': (1, 4096), 'cells_per_lane': (1, 1000),
-    'infer_min_cells': (1, 1000), 'infer_max_cells': (1, 1000), 'local_refine_steps': (0, 64),
-    'lsm_warmup': (0, 10**9), 'gt_points': (2, 10_000),
-}
-_FLOAT_FIELDS = ('resolution_m', 'dropout', 'negative_ratio', 'noise_px', 'infer_spacing_px',
-                 'curvature_ref', 'min_segment_frac', 'bar_width_m', 'local_score_threshold',
-                 'lambda1', 'lambda2', 'lambda3', 'no_lane_weight', 'z_weight',
-                 'match_class_weight', 'match_terminal_weight')
-_BOOL_FIELDS = ('adaptive_axis', 'shape_matching', 'smoothness_loss', 'anchor_noise',
-                'anchors_on_gt', 'aux_loss')
+            problems.append(f'{at}infer_min_cells {self.infer_min_cells} exceeds '
+                            f'{at}infer_max_cells {self.infer_max_cells}')
+        if problems:
+            raise ConfigError('; '.join(problems))

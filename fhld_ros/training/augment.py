@@ -24,6 +24,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from fhld_ros.bev import EMPTY_MIN_HEIGHT
+from fhld_ros.dataclass_dict import check_fields, documented
+from fhld_ros.errors import ConfigError
 from fhld_ros.sim.gt_lines import clip_to_square
 
 DENSITY = 1  # channel whose zero marks an empty cell (bev.py)
@@ -34,17 +36,19 @@ EMPTY_VALUES = (0.0, 0.0, 0.0, EMPTY_MIN_HEIGHT)
 class AugmentParams:
     """Random ranges; each draw is uniform within them."""
 
-    shift_m: float = 1.0  # |t_x|, |t_y| <= shift_m
-    rotate_deg: float = 10.0  # |theta| <= rotate_deg
-    flip_prob: float = 0.5  # probability of the y -> -y mirror
-    scale_min: float = 0.9
-    scale_max: float = 1.1
+    shift_m: float = documented(1.0, '|t_x|, |t_y| <= shift_m (m)', range='[0, inf)')
+    rotate_deg: float = documented(10.0, '|theta| <= rotate_deg', range='[0, inf)')
+    flip_prob: float = documented(0.5, 'probability of the y -> -y mirror', range='[0, 1]')
+    scale_min: float = documented(0.9, 'smallest scale', range='(0, inf)')
+    scale_max: float = documented(1.1, 'largest scale, >= scale_min', range='(0, inf)')
 
-    def validate(self) -> None:
-        if self.shift_m < 0 or self.rotate_deg < 0 or not 0 <= self.flip_prob <= 1:
-            raise ValueError('augment needs shift_m >= 0, rotate_deg >= 0, 0 <= flip_prob <= 1')
-        if not 0 < self.scale_min <= self.scale_max:
-            raise ValueError('augment needs 0 < scale_min <= scale_max')
+    def validate(self, where: str = '') -> None:
+        """ConfigError naming every unusable range (fields as `where.name`)."""
+        check_fields(self, where)
+        if self.scale_min > self.scale_max:
+            at = f'{where}.' if where else ''
+            raise ConfigError(f'{at}scale_min {self.scale_min} exceeds {at}scale_max '
+                              f'{self.scale_max}')
 
 
 @dataclass(frozen=True)
