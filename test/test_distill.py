@@ -251,12 +251,12 @@ def test_a_bad_distillation_weight_is_one_clear_error(caches, teacher_path, tmp_
     assert f'train.{name} must be a number >= 0' in err and len(err.splitlines()) == 1, err
 
 
-@pytest.mark.parametrize('path', sorted((REPO / 'config').glob('distill_*.yaml')),
+@pytest.mark.parametrize('path', sorted((REPO / 'config').rglob('distill_*.yaml')),
                          ids=lambda p: p.name)
 def test_distillation_configs_load_and_reuse_a_training_configs_cache(path):
     cfg = load_config(path)
     assert cfg.train.teacher and not cfg.train.init
-    owners = [load_config(p) for p in (REPO / 'config').glob('train_*.yaml')]
+    owners = [load_config(p) for p in (REPO / 'config').rglob('train_*.yaml')]
     owners = [o for o in owners if o.data.train_cache == cfg.data.train_cache]
     assert owners, f'no training config builds {cfg.data.train_cache}'
     assert all(cache_settings(o, 'train') == cache_settings(cfg, 'train') for o in owners)

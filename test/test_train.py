@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 import os
@@ -28,6 +29,7 @@ from fhld_ros.data.cache import (
 )
 from fhld_ros.data.samples import training_samples
 from fhld_ros.data.variation import SHARES
+from fhld_ros.errors import ConfigError
 from fhld_ros.model.checkpoint import load_checkpoint, save_checkpoint
 from fhld_ros.model.detector import FhldDetector
 from fhld_ros.sim.simulator import Simulator
@@ -40,7 +42,7 @@ from fhld_ros.training.augment import (
     warp_raster,
     warp_rasters,
 )
-from fhld_ros.training.config import cache_settings, load_config
+from fhld_ros.training.config import TrainSection, cache_settings, load_config
 from fhld_ros.training.dataset import CacheDataset, collate
 from fhld_ros.training.loop import init_weights
 
@@ -143,7 +145,35 @@ def test_cache_build_resumes_and_refuses_other_settings(caches):
             build_cache(caches / 'train', [5], other, workers=1, progress=False)
 
 
-@pytest.mark.parametrize('path', sorted((REPO / 'config').glob('train_*.yaml')),
+TRAINING_CONFIGS = sorted(p for p in (REPO / 'config').rglob('*.yaml')
+                          if p.name not in ('lane_detector.yaml', 'pjlab_camera_calib.yaml'))
+
+
+def test_experiments_are_apart_from_the_shipped_recipe_and_the_starting_points():
+    assert {p.relative_to(REPO / 'config').as_posix() for p in TRAINING_CONFIGS
+            if p.parent.name != 'experiments'} == {
+        'distill_stem5.yaml', 'train_cpu.yaml', 'train_gpu.yaml'}
+
+
+@pytest.mark.parametrize('path', TRAINING_CONFIGS, ids=lambda p: p.name)
+def test_every_training_config_loads(path):
+    cfg = load_config(path)
+    # the shipped file changes with each release: a recipe names the file it starts from
+    assert 'fhld_ros/checkpoints' not in cfg.train.teacher + cfg.train.init
+
+
+def test_the_shipped_recipe_is_self_contained_and_its_teacher_checked():
+    path = REPO / 'config' / 'distill_stem5.yaml'
+    assert 'base:' not in path.read_text() and 'git show' not in path.read_text()
+    t = load_config(path).train
+    assert (t.teacher, t.distill) == ('config/teachers/fhld_no_lane_stem7.pt', 'stem')
+    assert (REPO / t.teacher).is_file() and not t.init
+    assert dataclasses.replace(t, teacher=str(REPO / t.teacher)).verified('teacher')
+    assert load_checkpoint(REPO / t.teacher).config.stem_kernel == 7
+    assert load_config(path).model['stem_kernel'] == 5
+
+
+@pytest.mark.parametrize('path', [p for p in TRAINING_CONFIGS if p.name.startswith('train_')],
                          ids=lambda p: p.name)
 def test_shipped_training_configs_load(path):
     cfg = load_config(path)
@@ -153,6 +183,68 @@ def test_shipped_training_configs_load(path):
     assert train.bare_curbs == (path.name in ('train_cpu_barecurbs.yaml', *reshared))
     assert (train.no_markings_share != test.no_markings_share) == (path.name in reshared)
     assert test == dataclasses.replace(test, **SHARES)  # the test cache keeps the defaults
+
+
+def test_a_config_states_what_it_changes_over_its_base(tmp_path):
+    (tmp_path / 'exp').mkdir()
+    (tmp_path / 'base.yaml').write_text(
+        'seed: 4\nmodel: {stem_kernel: 7, lsm_warmup: 10}\n'
+        'data: {sensors: [vlp16, hdl64e], train_seeds: [0, 8], road_look: true}\n'
+        'train: {iterations: 50, lr: 1.0e-3}\n')
+    child = tmp_path / 'exp' / 'child.yaml'
+    child.write_text('base: ../base.yaml\nmodel: {lsm_warmup: 0}\ndata: {sensors: [vlp16]}\n'
+                     'augment:\ntrain: {iterations: 60}\n')
+    cfg = load_config(child)
+    assert cfg.seed == 4 and cfg.model == {'stem_kernel': 7, 'lsm_warmup': 0}
+    assert (cfg.data.cache.sensors, cfg.data.train_seeds, cfg.data.cache.road_look) == (
+        ('vlp16',), (0, 8), True)  # a list replaces the base's list
+    assert (cfg.train.iterations, cfg.train.lr) == (60, 1e-3)
+    assert cfg.augment == AugmentParams()  # an empty section keeps the base's (none here)
+
+
+@pytest.mark.parametrize('files, message', [
+    ({'a.yaml': 'base: b.yaml\n', 'b.yaml': 'base: a.yaml\n'}, 'base chain is a cycle'),
+    ({'a.yaml': 'base: a.yaml\n'}, 'base chain is a cycle'),
+    ({'a.yaml': 'base: missing.yaml\n'}, 'its base missing.yaml does not exist'),
+    ({'a.yaml': 'base: [b.yaml]\n'}, r"base must name a YAML file, not \['b.yaml'\]"),
+    ({'a.yaml': 'base: b.yaml\n', 'b.yaml': 'trian: {}\n'}, r'unknown section\(s\) trian'),
+    ({'a.yaml': 'data: {windows_per_seed: 3}\n'}, r'unknown key\(s\) windows_per_seed in '
+     'section data'),
+    ({'a.yaml': 'train: {teacher_sha256: abc}\n'}, 'train.teacher_sha256 must be 64'),
+    ({'a.yaml': f'train: {{init_sha256: {"a" * 64}}}\n'}, 'init_sha256 is given without'),
+])
+def test_a_bad_base_or_key_is_a_config_error(tmp_path, files, message):
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+    with pytest.raises(ConfigError, match=message):
+        load_config(tmp_path / 'a.yaml')
+
+
+def test_training_refuses_a_teacher_or_init_of_another_checksum(tmp_path):
+    path = tmp_path / 'teacher.pt'
+    path.write_bytes(b'weights')
+    right = hashlib.sha256(b'weights').hexdigest()
+    section = TrainSection(teacher=str(path), teacher_sha256=right)
+    assert section.verified('teacher') == str(path) == TrainSection(teacher=str(path)).verified(
+        'teacher')
+    with pytest.raises(ConfigError, match=f'train.teacher {path} has sha256 {right}, the '
+                       f'config asks for {"0" * 64}'):
+        dataclasses.replace(section, teacher_sha256='0' * 64).verified('teacher')
+    with pytest.raises(ConfigError, match='train.init .*missing.pt: cannot read it'):
+        TrainSection(init=str(tmp_path / 'missing.pt'), init_sha256=right).verified('init')
+
+
+def test_the_data_section_holds_the_training_caches_settings(tmp_path):
+    path = tmp_path / 'c.yaml'
+    path.write_text('model: {resolution_m: 0.08, intensity_encoding: absolute}\n'
+                    'data: {train_size_px: 400, train_windows_per_seed: 3, stride: 5,\n'
+                    '       topologies: [none, split], sensor_variation: true}\n')
+    cfg = load_config(path)
+    assert cache_settings(cfg, 'train') == cfg.data.cache == CacheSettings(
+        windows_per_seed=3, size_px=400, resolution_m=0.08, stride=5,
+        intensity_encoding='absolute', topologies=(None, 'split'), sensor_variation=True)
+    assert cache_settings(cfg, 'test') == dataclasses.replace(
+        cfg.data.cache, windows_per_seed=5, size_px=640, sensor_variation=False)
 
 
 def test_scenarios_cover_every_sensor_and_topology():

@@ -136,10 +136,10 @@ def start_run(cfg: TrainConfig, out_dir: Path, dist: Dist, resume: bool, command
     state = RunState()
     resuming = resume and (out_dir / 'last.pt').exists()
     if t.init and not resuming:
-        init_weights(module, t.init)
+        init_weights(module, t.verified('init'))
     if t.teacher and dist.world > 1:
         raise ValueError('train.teacher: a distillation runs in one process')
-    teacher = (Teacher(t.teacher, module, t.distill, copy_weights=not resuming,
+    teacher = (Teacher(t.verified('teacher'), module, t.distill, copy_weights=not resuming,
                        class_weight=t.distill_class_weight,
                        curve_weight=t.distill_curve_weight,
                        no_lane_weight=t.distill_no_lane_weight,
