@@ -46,6 +46,7 @@ from fhld_ros.data.cache import (
     write_shard,
 )
 from fhld_ros.data.samples import TrainingSample, accumulation, lanes_in_window, window_ends
+from fhld_ros.errors import ConfigError
 from fhld_ros.parameters import DetectorParams
 from fhld_ros.pipeline import LanePipeline
 from fhld_ros.rolling_grid import BevWindow
@@ -68,30 +69,30 @@ class LabelledBag:
     lanes_topic: str = LANES_GT  # the GT lanes (MarkerArray)
 
     def check(self, where: str) -> None:
-        """ValueError (one line, naming `where`) unless the bag can give training windows."""
+        """ConfigError (one line, naming `where`) unless the bag can give training windows."""
         if not isinstance(self.path, str) or not self.path:
-            raise ValueError(f'{where}.path must name a bag')
+            raise ConfigError(f'{where}.path must name a bag')
         if isinstance(self.weight, bool) or not isinstance(self.weight, (int, float)) or \
                 not (math.isfinite(self.weight) and self.weight > 0):
-            raise ValueError(f'{where}.weight must be a number > 0, not {self.weight!r}')
+            raise ConfigError(f'{where}.weight must be a number > 0, not {self.weight!r}')
         if not isinstance(self.lanes_topic, str) or not self.lanes_topic.startswith('/'):
-            raise ValueError(f'{where}.lanes_topic must be a topic name, not '
-                             f'{self.lanes_topic!r}')
+            raise ConfigError(f'{where}.lanes_topic must be a topic name, not '
+                              f'{self.lanes_topic!r}')
         try:
             types, counts = bag_topics(self.path), topic_counts(self.path)
         except BagError as exc:
-            raise ValueError(f'{where}: {exc}') from exc
+            raise ConfigError(f'{where}: {exc}') from exc
         required = {POINTS: TOPIC_TYPES[POINTS], self.lanes_topic: MARKER_ARRAY}
         for topic in required:
             if topic not in types:
-                raise ValueError(f'{where}: bag {self.path} has no topic {topic} (it has: '
-                                 f'{", ".join(sorted(types)) or "nothing"})')
+                raise ConfigError(f'{where}: bag {self.path} has no topic {topic} (it has: '
+                                  f'{", ".join(sorted(types)) or "nothing"})')
             if not counts.get(topic):
-                raise ValueError(f'{where}: bag {self.path} has no messages on {topic}')
+                raise ConfigError(f'{where}: bag {self.path} has no messages on {topic}')
         for topic, msgtype in {**required, ODOM: TOPIC_TYPES[ODOM]}.items():
             if topic in types and types[topic] != msgtype:
-                raise ValueError(f'{where}: bag {self.path}: {topic} is {types[topic]}, '
-                                 f'not {msgtype}')
+                raise ConfigError(f'{where}: bag {self.path}: {topic} is {types[topic]}, '
+                                  f'not {msgtype}')
 
 
 def window_settings(settings: CacheSettings) -> dict:
@@ -212,8 +213,8 @@ def bag_samples(bag: LabelledBag, settings: CacheSettings, stats: Counter | None
             yield from labelled()
     if not stats['windows']:
         why = ', '.join(f'{k} {v}' for k, v in sorted(stats.items()) if k != 'windows')
-        raise ValueError(f'bag {bag.path} gives no training window ({why or "no sweep"}'
-                         + ''.join(f'; {m}' for m in sorted(mismatch)) + ')')
+        raise ConfigError(f'bag {bag.path} gives no training window ({why or "no sweep"}'
+                          + ''.join(f'; {m}' for m in sorted(mismatch)) + ')')
 
 
 def build_bag_cache(bag: LabelledBag, settings: CacheSettings, train_cache: str | os.PathLike,
@@ -267,11 +268,11 @@ def read_bag_index(out: Path) -> dict:
 def bag_cache(bag: LabelledBag, settings: CacheSettings, train_cache: str | os.PathLike,
               build: bool = True, progress: bool = True) -> dict:
     """The index of the bag's windows, built first when missing (unless build is False:
-    then a ValueError naming the --cache-only step)."""
+    then a ConfigError naming the --cache-only step)."""
     out = bag_cache_dir(bag, settings, train_cache)
     if (out / INDEX_NAME).exists():
         return read_bag_index(out)
     if not build:
-        raise ValueError(f'the windows of bag {bag.path} are not cached ({out}); build them '
-                         'first with: fhld train --config CONFIG --cache-only')
+        raise ConfigError(f'the windows of bag {bag.path} are not cached ({out}); build them '
+                          'first with: fhld train --config CONFIG --cache-only')
     return build_bag_cache(bag, settings, train_cache, progress)

@@ -18,6 +18,7 @@ from torch.utils.data import ConcatDataset, Dataset, DistributedSampler, Sampler
 
 from fhld_ros.data.bag_source import bag_cache
 from fhld_ros.data.cache import cache_seeds, read_meta, shard_path
+from fhld_ros.errors import ConfigError
 from fhld_ros.training.augment import (
     AugmentParams,
     centre_crop,
@@ -57,12 +58,12 @@ class CacheDataset(Dataset):
         for s in chosen:
             path = shard_path(self.cache_dir, s)
             if not path.exists():
-                raise FileNotFoundError(f'cache shard missing: {path}')
+                raise ConfigError(f'cache shard missing: {path}')
             meta = read_meta(path)
             sizes.add((meta['size_px'], meta['resolution_m']))
             self.index.extend((path, s, i) for i in range(meta['windows']))
         if len(sizes) > 1:
-            raise ValueError(f'cache {self.cache_dir} mixes raster specs {sorted(sizes)}')
+            raise ConfigError(f'cache {self.cache_dir} mixes raster specs {sorted(sizes)}')
         self.size_px, self.resolution_m = sizes.pop() if sizes else (out_size or 640, 0.04)
         self.out_size = out_size or self.size_px
         if augment is not None:
@@ -126,7 +127,7 @@ class SourcesDataset(ConcatDataset):
             raise ValueError(f'one weight > 0 per source, got {list(weights)}')
         empty = [str(s.cache_dir) for s in sources if not len(s)]
         if empty:
-            raise ValueError(f'training source(s) without windows: {", ".join(empty)}')
+            raise ConfigError(f'training source(s) without windows: {", ".join(empty)}')
         for source, offset in zip(sources, [0, *self.cumulative_sizes[:-1]]):
             source.key_offset = offset
         self.weights = [float(w) for w in weights]

@@ -44,6 +44,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from fhld_ros.errors import ConfigError
 from fhld_ros.model.checkpoint import load_checkpoint
 from fhld_ros.model.detector import FhldDetector
 
@@ -80,9 +81,9 @@ class Teacher:
         self.class_weight, self.curve_weight = class_weight, curve_weight
         self.no_lane_weight, self.output_weight = no_lane_weight, output_weight
         if teacher.cfg.intensity_encoding != student.cfg.intensity_encoding:
-            raise ValueError(f'train.teacher {path} reads intensity as '
-                             f'{teacher.cfg.intensity_encoding!r}, the model section as '
-                             f'{student.cfg.intensity_encoding!r}')
+            raise ConfigError(f'train.teacher {path} reads intensity as '
+                              f'{teacher.cfg.intensity_encoding!r}, the model section as '
+                              f'{student.cfg.intensity_encoding!r}')
         source, target = teacher.state_dict(), student.state_dict()
         matching = {k: v for k, v in source.items()
                     if k in target and target[k].shape == v.shape}
@@ -90,8 +91,8 @@ class Teacher:
         differs = sorted(k for k in target if not k.startswith(prefixes) and k not in matching)
         if differs:
             parts = ', '.join(prefix[:-1] for prefix in prefixes)
-            raise ValueError(f'train.teacher {path}: the student may differ from its teacher '
-                             f'only in its {parts} (train.distill); it differs at {differs[0]}')
+            raise ConfigError(f'train.teacher {path}: the student may differ from its teacher '
+                              f'only in its {parts} (train.distill); it differs at {differs[0]}')
         if copy_weights:
             student.load_state_dict(matching, strict=False)
         # fitted on the first batch (losses); a resumed run has it in its weights already

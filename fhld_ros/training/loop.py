@@ -27,6 +27,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from fhld_ros.data.bag_source import bag_cache
 from fhld_ros.data.cache import build_cache, shard_path
+from fhld_ros.errors import ConfigError
 from fhld_ros.evaluation.metrics import PointCounts, point_counts
 from fhld_ros.model.checkpoint import load_checkpoint
 from fhld_ros.model.config import FhldConfig
@@ -54,8 +55,8 @@ def train(cfg: TrainConfig, out_dir: Path, resume: bool = False,
     deadline = time.monotonic() + 60 * max_minutes if max_minutes is not None else None
     dist = setup_distributed(device)
     if (out_dir / 'last.pt').exists() and not resume:
-        raise FileExistsError(f'{out_dir / "last.pt"} exists: pass --resume to continue it, '
-                              'or choose another --out')
+        raise ConfigError(f'{out_dir / "last.pt"} exists: pass --resume to continue it, '
+                          'or choose another --out')
     summary: dict[str, Any] = {'out': str(out_dir), 'iteration': 0, 'stopped': None}
     if not ensure_caches(cfg, deadline, progress=progress and dist.main, world=dist.world):
         summary['stopped'] = 'time budget reached while building the cache'
@@ -83,8 +84,8 @@ def ensure_caches(cfg: TrainConfig, deadline: float | None, workers: int | None 
         if not missing:
             continue
         if world > 1:
-            raise ValueError(f'{split} cache {cache_dir} lacks {len(missing)} shards; build it '
-                             'first with: fhld train --config CONFIG --cache-only')
+            raise ConfigError(f'{split} cache {cache_dir} lacks {len(missing)} shards; build it '
+                              'first with: fhld train --config CONFIG --cache-only')
         report = build_cache(cache_dir, range(lo, hi), cache_settings(cfg, split),
                              workers=workers or cfg.data.cache_workers, deadline=deadline,
                              progress=progress)
@@ -138,7 +139,7 @@ def start_run(cfg: TrainConfig, out_dir: Path, dist: Dist, resume: bool, command
     if t.init and not resuming:
         init_weights(module, t.verified('init'))
     if t.teacher and dist.world > 1:
-        raise ValueError('train.teacher: a distillation runs in one process')
+        raise ConfigError('train.teacher: a distillation runs in one process')
     teacher = (Teacher(t.verified('teacher'), module, t.distill, copy_weights=not resuming,
                        class_weight=t.distill_class_weight,
                        curve_weight=t.distill_curve_weight,
@@ -167,8 +168,8 @@ def init_weights(module: FhldDetector, path: str) -> None:
     try:
         module.load_state_dict(source)
     except RuntimeError as exc:
-        raise ValueError(f'train.init {path}: its layers differ from the model section\'s: '
-                         f'{str(exc).splitlines()[0]}') from exc
+        raise ConfigError(f'train.init {path}: its layers differ from the model section\'s: '
+                          f'{str(exc).splitlines()[0]}') from exc
 
 
 def datasets(cfg: TrainConfig, dist: Dist) -> tuple[Dataset, CacheDataset]:
@@ -235,8 +236,8 @@ def batch_stream(dataset: Dataset, batch_size: int, start_it: int, total: int, d
     sampler = training_sampler(dataset, dist.world, dist.rank, seed)
     per_epoch = len(sampler) // batch_size
     if per_epoch == 0:
-        raise ValueError(f'{len(dataset)} training windows are fewer than one batch of '
-                         f'{batch_size} x {dist.world} processes')
+        raise ConfigError(f'{len(dataset)} training windows are fewer than one batch of '
+                          f'{batch_size} x {dist.world} processes')
     it = start_it
     while it < total:
         epoch, step = divmod(it, per_epoch)

@@ -16,6 +16,7 @@ from pathlib import Path
 import torch
 
 from fhld_ros.dataclass_dict import to_plain
+from fhld_ros.errors import ConfigError
 from fhld_ros.model.checkpoint import load_checkpoint, save_checkpoint
 from fhld_ros.model.config import FhldConfig
 from fhld_ros.model.detector import FhldDetector
@@ -64,7 +65,7 @@ def resume_run(path: Path, module: FhldDetector, opt: torch.optim.Optimizer,
     """Load last.pt into module and opt, restore this rank's RNG; the run's progress."""
     ckpt = load_checkpoint(path, map_location='cpu')
     if ckpt.config != model_cfg:
-        raise ValueError(f'{path} was trained with another model config; the config '
+        raise ConfigError(f'{path} was trained with another model config; the config '
                          'file\'s model section must not change across a resume')
     module.load_state_dict(ckpt.model.state_dict())
     saved = ckpt.meta['train_state']

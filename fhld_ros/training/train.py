@@ -25,7 +25,6 @@ import time
 from pathlib import Path
 
 from fhld_ros.errors import ConfigError
-from fhld_ros.model.checkpoint import CheckpointError
 from fhld_ros.training.config import TrainConfig, load_config
 from fhld_ros.training.distributed import shutdown
 from fhld_ros.training.loop import ensure_caches, train
@@ -61,9 +60,7 @@ def run(args: argparse.Namespace) -> int:
             return 0
         summary = train(cfg, out_dir, args.resume, args.max_minutes, args.device,
                         not args.quiet, command_line(args))
-    except (ValueError, FileExistsError, FileNotFoundError, CheckpointError) as exc:
-        raise ConfigError(str(exc)) from exc
-    finally:
+    finally:  # user errors are ConfigErrors (one line); anything else shows its traceback
         shutdown()
     if int(os.environ.get('RANK', '0')) == 0:
         how = f'stopped ({summary["stopped"]})' if summary['stopped'] else 'done'
@@ -81,10 +78,8 @@ def _read_config(path: Path, max_minutes: float | None) -> TrainConfig:
         raise ConfigError(f'--max-minutes must be >= 0, got {max_minutes:g}')
     try:
         return load_config(path)
-    except (ValueError, TypeError) as exc:
+    except ConfigError as exc:
         raise ConfigError(f'bad config {path}: {exc}') from exc
-    except Exception as exc:  # YAML syntax errors
-        raise ConfigError(f'cannot read config {path}: {" ".join(str(exc).split())}') from exc
 
 
 def command_line(args: argparse.Namespace) -> str:
