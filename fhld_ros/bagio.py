@@ -23,12 +23,12 @@ import yaml
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 
-from fhld_ros.errors import CliError
+from fhld_ros.errors import ConfigError
 from msg_adapters.family import RosbagsFamily, rosbags_family
 from msg_adapters.lanes import LaneSet, marker_array_to_lanes
 
 
-class BagError(CliError, ValueError):
+class BagError(ConfigError, ValueError):
     """A bag cannot be read or written; the message names the bag and the problem."""
 
 

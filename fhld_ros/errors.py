@@ -9,7 +9,3 @@ printed (no traceback). It is a ValueError, so callers that check values keep wo
 
 class ConfigError(ValueError):
     """A value or file from the user that cannot be used; the message names it."""
-
-
-# The name it had when only the CLI used it; kept so `except CliError` still catches everything.
-CliError = ConfigError

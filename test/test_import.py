@@ -13,7 +13,7 @@ import pytest
 from fhld_ros.bagio import read_messages, topic_counts
 from fhld_ros.commands import import_scans
 from fhld_ros.commands.replay import replay
-from fhld_ros.errors import CliError
+from fhld_ros.errors import ConfigError
 from fhld_ros.importing.pcd import XYZI_DTYPE, lzf_decompress, read_pcd
 from fhld_ros.parameters import DetectorParams
 from fhld_ros.sim.simulator import Simulator
@@ -261,7 +261,7 @@ def test_pcd_errors_name_the_problem(tmp_path: Path, case: tuple[str, bytes, str
     name, raw, message = case
     src = tmp_path / f'{name}.pcd'
     src.write_bytes(raw)
-    with pytest.raises(CliError, match=message) as info:
+    with pytest.raises(ConfigError, match=message) as info:
         run_import(src, tmp_path / 'bag')
     assert str(src) in str(info.value) and '\n' not in str(info.value)
     assert sorted(p.name for p in tmp_path.iterdir()) == [src.name]  # nothing written
@@ -331,15 +331,15 @@ def test_kitti_and_argument_errors(tmp_path: Path) -> None:
         ((tmp_path / 'poses.txt', out), 'neither a .pcd nor a KITTI .bin'),
     ]
     for argv, message in cases:
-        with pytest.raises(CliError, match=message):
+        with pytest.raises(ConfigError, match=message):
             run_import(*argv)
     (src / '1.bin').write_bytes(b'\0' * 33)
-    with pytest.raises(CliError, match=r'1.bin: 33 bytes is not a multiple of 16'):
+    with pytest.raises(ConfigError, match=r'1.bin: 33 bytes is not a multiple of 16'):
         run_import(src, out)  # fails on the second sweep: nothing written
     assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == [
         'back.txt', 'in', 'poses.txt', 'times.txt']
     (src / 'a.pcd').write_bytes(pcd_bytes(expected_xyzi(known_cloud(5)), 'ascii'))
-    with pytest.raises(CliError, match='mixes 1 .pcd and 2 .bin files'):
+    with pytest.raises(ConfigError, match='mixes 1 .pcd and 2 .bin files'):
         run_import(src, out)
 
 
@@ -349,21 +349,21 @@ def test_output_paths_refused(tmp_path: Path) -> None:
     (tmp_path / 'poses.txt').write_text('1 0 0 0 0 1 0 0 0 0 1 0\n')
     for out, message in ((src, 'is SRC'), (src / 'bag', 'is inside SRC'),
                          (tmp_path, 'contains SRC'), (src / '0.bin', 'is inside SRC')):
-        with pytest.raises(CliError, match=message):
+        with pytest.raises(ConfigError, match=message):
             run_import(src, out, '--overwrite')
-    with pytest.raises(CliError, match='contains SRC'):
+    with pytest.raises(ConfigError, match='contains SRC'):
         run_import(src / '0.bin', src, '--overwrite')
-    with pytest.raises(CliError, match='is --poses'):
+    with pytest.raises(ConfigError, match='is --poses'):
         run_import(src / '0.bin', tmp_path / 'poses.txt', '--poses', tmp_path / 'poses.txt',
                    '--overwrite')
     assert (tmp_path / 'poses.txt').read_text() == '1 0 0 0 0 1 0 0 0 0 1 0\n'
     (other := tmp_path / 'other').mkdir()
     (other / 'keep.txt').write_text('not a bag')
-    with pytest.raises(CliError, match='exists and is not a rosbag2 bag'):
+    with pytest.raises(ConfigError, match='exists and is not a rosbag2 bag'):
         run_import(src, other, '--overwrite')
     assert (other / 'keep.txt').read_text() == 'not a bag'
     run_import(src, tmp_path / 'bag')
-    with pytest.raises(CliError, match=r'exists \(use --overwrite'):
+    with pytest.raises(ConfigError, match=r'exists \(use --overwrite'):
         run_import(src, tmp_path / 'bag')
     expected_xyzi(known_cloud(12)).tofile(src / '1.bin')
     assert run_import(src, tmp_path / 'bag', '--overwrite') == 0

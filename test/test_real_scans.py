@@ -11,7 +11,7 @@ import json
 import numpy as np
 import pytest
 
-from fhld_ros.errors import CliError
+from fhld_ros.errors import ConfigError
 from fhld_ros.evaluation import real_scans
 from fhld_ros.evaluation.real_scans import LabelledLine, ScanLabels, score_scan
 from fhld_ros.parameters import DetectorParams
@@ -165,19 +165,19 @@ def test_read_sweep_layouts_by_name(tmp_path) -> None:
     assert one['ring'][0] == 7.0 and acc['dt'][0] == 7.0
     assert np.allclose(kitti.view('<f4'), [2, 5, -1.8, 40])  # KITTI: already x forward
     (tmp_path / 'bad.pcd.bin').write_bytes(b'\0' * 24)
-    with pytest.raises(CliError, match='not a multiple of 20'):
+    with pytest.raises(ConfigError, match='not a multiple of 20'):
         real_scans.read_sweep(tmp_path / 'bad.pcd.bin')
 
 
 def test_bad_input_is_one_clear_error(tmp_path) -> None:
     (tmp_path / NO_PAINT).write_bytes(b'\0' * 10)  # not whole 16-byte points
-    with pytest.raises(CliError, match='not a multiple of 16'):
+    with pytest.raises(ConfigError, match='not a multiple of 16'):
         real_scans.evaluate(tmp_path, DetectorParams(detector='classical'))
-    with pytest.raises(CliError, match='none of the labelled scans'):
+    with pytest.raises(ConfigError, match='none of the labelled scans'):
         real_scans.evaluate(tmp_path / 'missing', DetectorParams(detector='classical'))
     bad_labels = tmp_path / 'labels.json'
     bad_labels.write_text('{"scans": [{"file": "x.bin", "lines": [{"id": "a"}]}]}')
-    with pytest.raises(CliError, match='cannot read labels'):
+    with pytest.raises(ConfigError, match='cannot read labels'):
         real_scans.evaluate(real_scans.DEFAULT_DIR, DetectorParams(), labels_path=bad_labels)
 
 

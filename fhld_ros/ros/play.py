@@ -16,7 +16,7 @@ from rclpy.publisher import Publisher
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from fhld_ros.bagio import bag_topics, read_raw
-from fhld_ros.errors import CliError
+from fhld_ros.errors import ConfigError
 from msg_adapters.family import rclpy_family
 
 
@@ -35,7 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if not args.rate > 0:
-        raise CliError(f'--rate must be positive, got {args.rate}')
+        raise ConfigError(f'--rate must be positive, got {args.rate}')
     available = bag_topics(args.bag, args.topics)  # names any topic the bag lacks
     rclpy.init()
     node = rclpy.create_node('fhld_play')
@@ -60,7 +60,7 @@ def _play(node: Node, args: argparse.Namespace, available: dict[str, str]) -> in
         family.cls('rosgraph_msgs/msg/Clock'), '/clock', 10)
     for topic in args.wait_for:
         if topic not in publishers:
-            raise CliError(f'--wait-for {topic} is not among the published topics')
+            raise ConfigError(f'--wait-for {topic} is not among the published topics')
         _wait_for_subscriber(publishers[topic], topic, args.wait_timeout)
     if args.wait_for:
         # the writer sees the match before the reader does, and a reliable reader drops
@@ -85,5 +85,5 @@ def _wait_for_subscriber(publisher: Publisher, topic: str, timeout: float) -> No
     deadline = time.monotonic() + timeout
     while publisher.get_subscription_count() == 0:
         if time.monotonic() > deadline:
-            raise CliError(f'no subscriber appeared on {topic} within {timeout:.0f} s')
+            raise ConfigError(f'no subscriber appeared on {topic} within {timeout:.0f} s')
         time.sleep(0.05)

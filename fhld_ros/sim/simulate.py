@@ -26,7 +26,7 @@ from fhld_ros.bagio import BagWriter, check_file_output, check_output, write_fil
 from fhld_ros.camera.calibration import CameraCalibration
 from fhld_ros.camera.camera_topics import write_camera
 from fhld_ros.camera.labels2d import ImageLabels, label_path, write_labels
-from fhld_ros.errors import CliError
+from fhld_ros.errors import ConfigError
 from fhld_ros.intensity import normalize_intensity
 from fhld_ros.sim.camera import CAMERA_FRAME, SimCamera, sweep_stamp_ns
 from fhld_ros.sim.labels2d_gt import sim_image_labels
@@ -90,30 +90,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _check(args: argparse.Namespace) -> None:
     check_output(args.out_bag, args.overwrite)
     if not 1 <= args.sweeps <= MAX_SWEEPS:
-        raise CliError(f'--sweeps must be in 1..{MAX_SWEEPS}, got {args.sweeps}')
+        raise ConfigError(f'--sweeps must be in 1..{MAX_SWEEPS}, got {args.sweeps}')
     if args.seed < 0:
-        raise CliError(f'--seed must be >= 0, got {args.seed}')
+        raise ConfigError(f'--seed must be >= 0, got {args.seed}')
     if args.columns is not None and not 64 <= args.columns <= 4096:
-        raise CliError(f'--columns must be in 64..4096, got {args.columns}')
+        raise ConfigError(f'--columns must be in 64..4096, got {args.columns}')
     if args.speed is not None and not 0.0 <= args.speed <= 30.0:
-        raise CliError(f'--speed must be within 0..30 m/s, got {args.speed:g}')
+        raise ConfigError(f'--speed must be within 0..30 m/s, got {args.speed:g}')
     if not 0.0 <= args.odom_noise <= 10.0:
-        raise CliError(f'--odom-noise must be within 0..10, got {args.odom_noise:g}')
+        raise ConfigError(f'--odom-noise must be within 0..10, got {args.odom_noise:g}')
     if args.preview is not None:
         preview = Path(args.preview)
         if preview.suffix.lower() != '.png':
-            raise CliError(f'--preview must name a .png file, got {preview}')
+            raise ConfigError(f'--preview must name a .png file, got {preview}')
         check_file_output(preview, args.overwrite, {'OUT_BAG': args.out_bag}, '--preview')
     if not args.frame_id or args.frame_id == 'odom' or any(c.isspace() for c in args.frame_id):
-        raise CliError(f'--frame-id must be a non-empty name other than odom, got '
+        raise ConfigError(f'--frame-id must be a non-empty name other than odom, got '
                        f'{args.frame_id!r}')
     if args.camera and args.frame_id == CAMERA_FRAME:
-        raise CliError(f'--frame-id {CAMERA_FRAME} is the camera\'s frame with --camera: '
+        raise ConfigError(f'--frame-id {CAMERA_FRAME} is the camera\'s frame with --camera: '
                        'name the cloud frame otherwise')
     args.camera_wh = _camera_size(args.camera_size)
     if args.labels2d is not None:
         if not args.camera:
-            raise CliError('--labels2d needs --camera (the labels are of the camera images)')
+            raise ConfigError('--labels2d needs --camera (the labels are of the camera images)')
         _check_labels_dir(Path(args.labels2d), args)
 
 
@@ -121,7 +121,8 @@ def _camera_size(text: str) -> tuple[int, int]:
     match = re.fullmatch(r'(\d+)x(\d+)', text.strip())
     lo, hi = CAMERA_SIZE_RANGE
     if match is None or not all(lo <= int(v) <= hi for v in match.groups()):
-        raise CliError(f'--camera-size must be WxH with both within {lo}..{hi} px, got {text!r}')
+        raise ConfigError(f'--camera-size must be WxH with both within {lo}..{hi} px, '
+                          f'got {text!r}')
     return int(match.group(1)), int(match.group(2))
 
 
@@ -136,21 +137,22 @@ def _check_labels_dir(directory: Path, args: argparse.Namespace) -> None:
     name = f'--labels2d {directory}'
     out_r, bag_r = directory.resolve(), Path(args.out_bag).resolve()
     if out_r == bag_r or bag_r in out_r.parents or out_r in bag_r.parents:
-        raise CliError(f'{name} overlaps OUT_BAG {args.out_bag}: write it elsewhere')
+        raise ConfigError(f'{name} overlaps OUT_BAG {args.out_bag}: write it elsewhere')
     if args.preview is not None and Path(args.preview).resolve() == out_r:
-        raise CliError(f'{name} is --preview {args.preview}: write it elsewhere')
+        raise ConfigError(f'{name} is --preview {args.preview}: write it elsewhere')
     if directory.is_symlink() or (directory.exists() and not directory.is_dir()):
-        raise CliError(f'{name} exists and is not a directory')
+        raise ConfigError(f'{name} exists and is not a directory')
     if not directory.exists():
         if not out_r.parent.is_dir():
-            raise CliError(f'cannot write {name}: directory {out_r.parent} does not exist')
+            raise ConfigError(f'cannot write {name}: directory {out_r.parent} does not exist')
         return
     if any(directory.iterdir()) and not args.overwrite:
-        raise CliError(f'{name} exists and is not empty (use --overwrite to replace the label '
+        raise ConfigError(f'{name} exists and is not empty (use --overwrite to replace the label '
                        'files of this run)')
     for path in _label_paths(directory, args.sweeps):
         if path.is_symlink() or (path.exists() and not path.is_file()):
-            raise CliError(f'{name}: {path.name} exists and is not a regular file: not replaced')
+            raise ConfigError(f'{name}: {path.name} exists and is not a regular file: '
+                              'not replaced')
 
 
 def run(args: argparse.Namespace) -> int:
@@ -162,7 +164,7 @@ def run(args: argparse.Namespace) -> int:
                         odom_noise=args.odom_noise, motion_distortion=args.motion_distortion,
                         noise=not args.no_noise)
     except ValueError as exc:
-        raise CliError(str(exc)) from exc
+        raise ConfigError(str(exc)) from exc
     sim.frame_id = args.frame_id
     preview = None
     if args.preview:
