@@ -14,7 +14,7 @@ import yaml
 
 from fhld_ros.dataclass_dict import documented, field_problems, from_dict
 from fhld_ros.errors import ConfigError
-from fhld_ros.model.config import FhldConfig
+from fhld_ros.model.config import REFINE_STEPS, SIZE_PX, FhldConfig
 
 # Each field's range or choices sit beside its doc (dataclass_dict.documented). Upper bounds keep
 # memory and time finite (size_px = 100000 asked numpy for 75 GiB); they sit far above any
@@ -55,7 +55,8 @@ class DetectorParams:
         "raster's minimum heights); false keeps the model's own heights")
     local_refine_steps: int = documented(
         FhldConfig.local_refine_steps, 'FHLD anchor cells re-centred on the segment they found '
-        'and classified again this many times (0 = on the global curves only)', range='[0, 64]')
+        'and classified again this many times (0 = on the global curves only)',
+        range=REFINE_STEPS)
     evidence_reach_m: float = documented(
         1.5, 'FHLD lanes are cut where no return lies within this distance (m) in the window: '
         'no lanes over ground the sensor never saw (0.0 = off)', range='[0, 100]')
@@ -63,8 +64,7 @@ class DetectorParams:
         1.3, 'FHLD lanes whose brightest returns are not this many times as bright as the road '
         'on each side of them (at their height) are dropped: no lanes along bare curbs, seams '
         'or light strips (0.0 = off)', range='[0, 100]')
-    size_px: int = documented(640, 'BEV window size in cells (square)',
-                              range='[32, 4096]')  # FhldConfig's bound
+    size_px: int = documented(640, 'BEV window size in cells (square)', range=SIZE_PX)
     resolution_m: float = documented(0.04, 'BEV cell size in metres', range='(0, 10]')
     accumulate_sec: float = documented(
         1.0, 'sweeps younger than this (relative to the newest) are accumulated',

@@ -19,6 +19,8 @@ MAX_WIDTH = 4096  # channels of any layer
 # is refused before a model is built (d_model = 2**20 would ask for terabytes).
 WIDTH = f'[1, {MAX_WIDTH}]'
 LAYERS = '[0, 64]'
+SIZE_PX = '[32, 4096]'  # DetectorParams' too
+REFINE_STEPS = LAYERS  # DetectorParams' too
 WEIGHT = '[0, inf)'  # loss weights, distances, ratios
 
 
@@ -27,7 +29,7 @@ class FhldConfig:
     """Every hyper-parameter; each field's doc and the values it takes (dataclass_dict)."""
 
     size_px: int = documented(640, 'raster side the checkpoint expects (bev.py), cells; a '
-                              'multiple of 32', range='[32, 4096]')
+                              'multiple of 32', range=SIZE_PX)
     resolution_m: float = documented(0.04, 'raster cell size, m (640 px at 4 cm = 25.6 m)',
                                      range='(0, inf)')
     in_channels: int = documented(4, 'raster channels', range='[1, 64]')
@@ -90,7 +92,7 @@ class FhldConfig:
     # (docs/accuracy.md). Inference only: any checkpoint.
     local_refine_steps: int = documented(
         2, 'inference: each cell is moved to the segment centre it predicted and classified '
-        'again, this many times', range=LAYERS)
+        'again, this many times', range=REFINE_STEPS)
 
     # Ablation flags (paper Table 2) and training switches.
     adaptive_axis: bool = documented(True, 'False: cubic w.r.t. the window x axis')
