@@ -33,6 +33,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     'testset': ('fhld_ros.evaluation.testset',
                 'score detectors on the fixed held-out simulated test set'),
     'train': ('fhld_ros.training.train', 'train the FHLD detector on cached simulator windows'),
+    'salad-train': ('fhld_ros.salad.train',
+                    'train SALAD, the camera detector, on simulated camera drives'),
 }
 
 __all__ = ['COMMANDS', 'build_parser', 'main']
