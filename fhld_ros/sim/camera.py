@@ -110,11 +110,12 @@ class SimCamera:
 
     def __init__(self, sim: Simulator, width: int = DEFAULT_SIZE[0],
                  height: int = DEFAULT_SIZE[1], hfov_deg: float = HFOV_DEG,
-                 T_cloud_camera: np.ndarray | None = None) -> None:
+                 T_cloud_camera: np.ndarray | None = None, K: np.ndarray | None = None) -> None:
         if not (16 <= width <= 8192 and 16 <= height <= 8192):
             raise ValueError(f'camera size must be within 16..8192 px, got {width}x{height}')
         self.sim, self.width, self.height = sim, int(width), int(height)
-        self.K = intrinsics(self.width, self.height, hfov_deg)
+        self.K = intrinsics(self.width, self.height, hfov_deg) if K is None else \
+            np.array(K, dtype=np.float64)  # K given: hfov_deg is not used
         self.D = np.zeros(5)
         self.T_cloud_camera = mount_extrinsic() if T_cloud_camera is None else \
             np.asarray(T_cloud_camera, dtype=np.float64)
