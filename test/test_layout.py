@@ -22,6 +22,7 @@ LAYERS = (
     ('camera',),  # calibration, 2D labels, camera topics
     ('sim', 'annotation'),
     ('data',),  # windows with lanes: simulated, cached, from bags
+    ('salad',),  # the camera 3D-lane detector: its samples, data sources, model
     ('evaluation',),
     ('training',),
     ('ros',),  # the node and its plumbing

@@ -1,0 +1,123 @@
+"""Simulated drives as SALAD samples: the simulator's front camera (sim/camera.py) with, per
+seed, its own mount height, pitch, field of view and principal point, and as lanes the 3D GT of
+exactly what the image shows (sim/labels2d_gt.py: cut at the image border, at LABEL_RANGE_M and
+where the rendered depth hides them), in the camera's optical frame.
+
+Seeds: SALAD's training and held-out test drives use their own ranges (salad_seeds), apart
+from each other and from the LiDAR detector's (training below data.cache.TEST_SEED_BASE, its
+test set from there, `fhld autolabel-eval` from TEST_SEED_BASE + 500 000). A seed's scene
+(sensor preset, so the LiDAR mount the camera hangs from, and topology event) follows
+data.cache.scenario_for_seed, its road class and speed the simulator's own draw.
+"""
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from fhld_ros.data.cache import scenario_for_seed
+from fhld_ros.salad.sample import CameraLaneSample
+from fhld_ros.sim.camera import (
+    HFOV_DEG,
+    MOUNT_FORWARD_M,
+    PITCH_DEG,
+    CameraImage,
+    SimCamera,
+    intrinsics,
+)
+from fhld_ros.sim.camera import mount_extrinsic as camera_mount
+from fhld_ros.sim.labels2d_gt import sim_image_labels
+from fhld_ros.sim.simulator import MAX_SWEEPS, Simulator
+
+SALAD_TRAIN_SEED_BASE = 3_000_000
+SALAD_TEST_SEED_BASE = 4_000_000
+SALAD_SEED_SPAN = 1_000_000  # seeds per split: [base, base + span)
+SPLITS = {'train': SALAD_TRAIN_SEED_BASE, 'test': SALAD_TEST_SEED_BASE}
+DEFAULT_SIZE = (960, 540)  # width, height (px)
+FRAME_STRIDE = 10  # sweeps between a drive's frames (1 s at 10 Hz)
+# the camera drawn per seed (randomise=True)
+HEIGHT_RANGE_M = (1.2, 2.0)  # optical centre above the road
+PITCH_RANGE_DEG = (-1.0, 5.0)  # optical axis below the horizontal (+: looking down)
+HFOV_RANGE_DEG = (50.0, 90.0)
+PRINCIPAL_JITTER = 0.03  # principal point off the image centre, up to this share of the size
+FIXED_HEIGHT_M = 1.5  # randomise=False: this height, PITCH_DEG and HFOV_DEG, centred
+
+
+@dataclass(frozen=True)
+class CameraDraw:
+    """The camera of one seed: height above the road (m), pitch (deg, + down), horizontal FOV
+    (deg), principal point offset from the image centre (fractions of width and height)."""
+
+    height_m: float
+    pitch_deg: float
+    hfov_deg: float
+    principal_offset: tuple[float, float] = (0.0, 0.0)
+
+    def intrinsics(self, size: tuple[int, int]) -> np.ndarray:
+        """K of a (width, height) image: square pixels, the principal point shifted."""
+        width, height = size
+        K = intrinsics(width, height, self.hfov_deg)
+        K[0, 2] += self.principal_offset[0] * width
+        K[1, 2] += self.principal_offset[1] * height
+        return K
+
+    def extrinsic(self, lidar_height_m: float) -> np.ndarray:
+        """T_cloud_camera on a LiDAR lidar_height_m above the road."""
+        return camera_mount(MOUNT_FORWARD_M, lidar_height_m - self.height_m, self.pitch_deg)
+
+
+def camera_for_seed(seed: int, randomise: bool = True) -> CameraDraw:
+    """The seed's camera, from its own generator (the scene's draws stay what they are)."""
+    if not randomise:
+        return CameraDraw(FIXED_HEIGHT_M, PITCH_DEG, HFOV_DEG)
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5A1AD]))
+    height, pitch, hfov = (float(rng.uniform(*r)) for r in
+                           (HEIGHT_RANGE_M, PITCH_RANGE_DEG, HFOV_RANGE_DEG))
+    du, dv = rng.uniform(-PRINCIPAL_JITTER, PRINCIPAL_JITTER, 2)
+    return CameraDraw(height, pitch, hfov, (float(du), float(dv)))
+
+
+def salad_seeds(split: str, count: int, start: int = 0) -> range:
+    """Seeds start .. start + count - 1 of a split ('train' or 'test')."""
+    if split not in SPLITS:
+        raise ValueError(f'split must be one of {", ".join(SPLITS)}, got {split!r}')
+    if start < 0 or count < 0 or start + count > SALAD_SEED_SPAN:
+        raise ValueError(f'seeds {start}..{start + count - 1} are outside the split\'s '
+                         f'0..{SALAD_SEED_SPAN - 1}')
+    return range(SPLITS[split] + start, SPLITS[split] + start + count)
+
+
+def drive_camera(seed: int, frames: int, size: tuple[int, int] = DEFAULT_SIZE,
+                 randomise: bool = True) -> SimCamera:
+    """The seed's simulator (long enough for `frames` frames FRAME_STRIDE sweeps apart) and
+    the camera on it."""
+    if not 1 <= frames <= (MAX_SWEEPS - 1) // FRAME_STRIDE + 1:
+        raise ValueError(f'frames must be within 1..{(MAX_SWEEPS - 1) // FRAME_STRIDE + 1}, '
+                         f'got {frames}')
+    scenario = scenario_for_seed(seed)
+    sim = Simulator(seed, sweeps=(frames - 1) * FRAME_STRIDE + 1, sensor=scenario['sensor'],
+                    topology=scenario['topology'])
+    draw = camera_for_seed(seed, randomise)
+    width, height = size
+    return SimCamera(sim, width, height, T_cloud_camera=draw.extrinsic(sim.mount.z),
+                     K=draw.intrinsics((width, height)))
+
+
+def visible_lanes(camera: SimCamera, k: int) -> tuple[CameraImage, list[np.ndarray]]:
+    """Sweep k's image and the 3D GT of the lane pieces it shows, each (N, 3) in the optical
+    frame, near end first."""
+    image = camera.render(k)
+    _, pieces = sim_image_labels(camera.sim, camera.calibration(), image)
+    to_camera = np.linalg.inv(image.camera_to_odom)
+    return image, [p @ to_camera[:3, :3].T + to_camera[:3, 3] for p in pieces]
+
+
+def simulated_samples(seed: int, frames: int, size: tuple[int, int] = DEFAULT_SIZE,
+                      randomise: bool = True) -> Iterator[CameraLaneSample]:
+    """`frames` images of the seed's drive, FRAME_STRIDE sweeps apart, with their visible
+    lanes. randomise: the seed's own camera (camera_for_seed), else the fixed one."""
+    camera = drive_camera(seed, frames, size, randomise)
+    for k in range(0, frames * FRAME_STRIDE, FRAME_STRIDE):
+        image, lanes = visible_lanes(camera, k)
+        yield CameraLaneSample(image.rgb, camera.K.copy(), lanes, f'sim seed {seed} sweep {k}')
