@@ -22,9 +22,9 @@ LAYERS = (
     ('camera',),  # calibration, 2D labels, camera topics
     ('sim', 'annotation'),
     ('data',),  # windows with lanes: simulated, cached, from bags
-    ('salad',),  # the camera 3D-lane detector: its samples, data sources, model
     ('evaluation',),
     ('training',),
+    ('salad',),  # the camera detector: its data, model, training and scoring
     ('ros',),  # the node and its plumbing
     ('commands',),  # `fhld ...`
 )

@@ -1,0 +1,109 @@
+"""SALAD's training data: samples resampled to the virtual camera once and packed on disk, one
+shard per source (a simulated drive: `simulated_shard`; or any CameraLaneSample iterable:
+`write_shard`), then read with augmentation and turned into targets per draw.
+
+A shard (`<name>.npz`) holds `images` (N, H, W, 3) uint8, `points` (M, 3) float32 (every
+lane's points, optical frame), `lane_ends` (L,) int64 (each lane's end in points) and
+`sample_ends` (N,) int64 (each sample's end in lanes); a shard is written to a temporary name
+and renamed, so an interrupted build leaves no half shard and a rerun skips what is done.
+"""
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from fhld_ros.salad.augment import SaladAugment, augment
+from fhld_ros.salad.sample import CameraLaneSample
+from fhld_ros.salad.sim_source import simulated_samples
+from fhld_ros.salad.targets import lane_targets
+from fhld_ros.salad.virtual_camera import VirtualCamera
+
+SHARD_SUFFIX = '.npz'
+
+
+def to_virtual(sample: CameraLaneSample, camera: VirtualCamera) -> CameraLaneSample:
+    """The sample as the virtual camera sees it (lanes unchanged: same optical frame)."""
+    return CameraLaneSample(camera.warp(sample.image, sample.intrinsics), camera.intrinsics,
+                            sample.lanes, sample.name)
+
+
+def write_shard(path: Path, samples: Iterable[CameraLaneSample], camera: VirtualCamera) -> int:
+    """Pack the samples, resampled to the camera, into one shard; returns how many."""
+    images, lanes, per_sample = [], [], []
+    for sample in samples:
+        images.append(to_virtual(sample, camera).image)
+        kept = [lane.astype(np.float32) for lane in sample.lanes if len(lane) >= 2]
+        lanes.extend(kept)
+        per_sample.append(len(kept))
+    points = np.concatenate(lanes) if lanes else np.zeros((0, 3), dtype=np.float32)
+    tmp = path.with_name(f'.{path.stem}.tmp{SHARD_SUFFIX}')
+    np.savez(tmp, images=np.stack(images) if images else
+             np.zeros((0, camera.height, camera.width, 3), dtype=np.uint8),
+             points=points, lane_ends=np.cumsum([len(lane) for lane in lanes], dtype=np.int64),
+             sample_ends=np.cumsum(per_sample, dtype=np.int64))
+    os.replace(tmp, path)
+    return len(images)
+
+
+def simulated_shard(out_dir: Path, seed: int, frames: int, camera: VirtualCamera) -> Path:
+    """The shard of one simulated drive (skipped when it exists). Rendered at 1.5 times the
+    virtual camera's width, so the resampling averages pixels (antialiasing) as it would a
+    real high-resolution image."""
+    path = out_dir / f'sim_{seed}{SHARD_SUFFIX}'
+    if not path.exists():
+        size = (3 * camera.width // 2, round(3 * camera.width // 2 * 9 / 16))
+        write_shard(path, simulated_samples(seed, frames, size), camera)
+    return path
+
+
+class ShardSamples:
+    """Every sample of a set of shards, in memory (images stay uint8)."""
+
+    def __init__(self, paths: Iterable[Path]) -> None:
+        self.images: list[np.ndarray] = []
+        self.lanes: list[list[np.ndarray]] = []
+        for path in sorted(paths):
+            with np.load(path) as shard:
+                lanes = np.split(shard['points'].astype(np.float64), shard['lane_ends'][:-1]) \
+                    if len(shard['lane_ends']) else []
+                starts = np.concatenate([[0], shard['sample_ends'][:-1]])
+                for image, a, b in zip(shard['images'], starts, shard['sample_ends']):
+                    self.images.append(image)
+                    self.lanes.append(lanes[a:b])
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    def sample(self, index: int, camera: VirtualCamera) -> CameraLaneSample:
+        return CameraLaneSample(self.images[index], camera.intrinsics, self.lanes[index],
+                                f'sample {index}')
+
+
+class SaladDataset(Dataset):
+    """Augmented images (3, H, W) uint8 and their targets as tensors. Each draw of an index
+    is augmented anew (seeded by index and `epoch`, so a resumed run draws the same)."""
+
+    def __init__(self, samples: ShardSamples, camera: VirtualCamera,
+                 aug: SaladAugment | None = None, seed: int = 0) -> None:
+        self.samples, self.camera, self.aug, self.seed = samples, camera, aug, seed
+        self.epoch = 0
+
+    def __len__(self) -> int:
+        return len(self.samples)
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        sample = self.samples.sample(index, self.camera)
+        image, lanes = sample.image, sample.lanes
+        if self.aug is not None:
+            rng = np.random.default_rng([self.seed, self.epoch, index])
+            image, lanes = augment(sample, self.camera, rng, self.aug)
+        t = lane_targets(lanes, self.camera)
+        return {'image': torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1),
+                'seg': torch.from_numpy(t.seg), 'offsets': torch.from_numpy(t.offsets),
+                'depth': torch.from_numpy(t.depth),
+                'depth_mask': torch.from_numpy(t.depth_mask)}

@@ -1,0 +1,149 @@
+"""`fhld salad-train OUT`: train SALAD on simulated camera drives (and any shards in --cache).
+
+Drives come from SALAD's training seeds (sim_source.salad_seeds), each its own camera (height,
+pitch, field of view, principal point), rendered once into OUT/cache (dataset.py). The row
+shift and scale of the depth head (paper eq. 3) are measured on the training images before
+the first step and saved with the weights. Runs in slices: OUT/state.pt is written every
+--save-every steps, and --resume continues from it with the same draws; OUT/salad.pt, the
+weights alone with their config and provenance, is written at the end of every slice.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader
+
+from fhld_ros.errors import ConfigError
+from fhld_ros.salad.augment import SaladAugment
+from fhld_ros.salad.checkpoint import config_from_plain, save_salad
+from fhld_ros.salad.config import SaladConfig
+from fhld_ros.salad.dataset import SHARD_SUFFIX, SaladDataset, ShardSamples, simulated_shard
+from fhld_ros.salad.losses import SaladCriterion
+from fhld_ros.salad.model import SaladNet
+from fhld_ros.salad.sim_source import salad_seeds
+from fhld_ros.salad.targets import lane_targets, row_statistics
+
+ROW_STATS_SAMPLES = 400
+WARMUP_STEPS = 200
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument('out', type=Path, help='run folder (state.pt, salad.pt, cache/)')
+    parser.add_argument('--cache', type=Path, help='shard folder (default OUT/cache)')
+    parser.add_argument('--drives', type=int, default=200, help='simulated training drives')
+    parser.add_argument('--frames', type=int, default=10, help='images per drive, 1 s apart')
+    parser.add_argument('--steps', type=int, default=6000, help='optimiser steps in all')
+    parser.add_argument('--slice-steps', type=int, help='stop after this many (then --resume)')
+    parser.add_argument('--batch', type=int, default=8)
+    parser.add_argument('--lr', type=float, default=2e-3)
+    parser.add_argument('--workers', type=int, default=1, help='data and render processes')
+    parser.add_argument('--save-every', type=int, default=250)
+    parser.add_argument('--resume', action='store_true', help='continue OUT/state.pt')
+    parser.add_argument('--device', default='cpu')
+
+
+def build_cache(cache: Path, drives: int, frames: int, cfg: SaladConfig, workers: int) -> None:
+    cache.mkdir(parents=True, exist_ok=True)
+    seeds = [s for s in salad_seeds('train', drives)
+             if not (cache / f'sim_{s}{SHARD_SUFFIX}').exists()]
+    if not seeds:
+        return
+    print(f'rendering {len(seeds)} drives x {frames} images into {cache}', file=sys.stderr)
+    start = time.monotonic()
+    with ProcessPoolExecutor(max(workers, 1)) as pool:
+        list(pool.map(simulated_shard, [cache] * len(seeds), seeds, [frames] * len(seeds),
+                      [cfg.camera] * len(seeds)))
+    print(f'rendered in {time.monotonic() - start:.0f} s', file=sys.stderr)
+
+
+def measure_rows(samples: ShardSamples, cfg: SaladConfig) -> SaladConfig:
+    """cfg with the row shift and scale of the first ROW_STATS_SAMPLES training images."""
+    targets = [lane_targets(samples.lanes[i], cfg.camera)
+               for i in range(min(len(samples), ROW_STATS_SAMPLES))]
+    shift, scale = row_statistics(np.stack([t.depth for t in targets]),
+                                  np.stack([t.depth_mask for t in targets]))
+    return dataclasses.replace(cfg, row_shift=tuple(map(float, shift)),
+                               row_scale=tuple(map(float, scale)))
+
+
+def learning_rate(step: int, steps: int, peak: float) -> float:
+    """Linear warm-up, then cosine to zero."""
+    if step < WARMUP_STEPS:
+        return peak * (step + 1) / WARMUP_STEPS
+    return 0.5 * peak * (1 + math.cos(math.pi * min(step / steps, 1.0)))
+
+
+def _start(args: argparse.Namespace, samples: ShardSamples) -> tuple[SaladNet, dict]:
+    """The model and the run state, fresh or from OUT/state.pt."""
+    state_path = args.out / 'state.pt'
+    if args.resume:
+        if not state_path.exists():
+            raise ConfigError(f'--resume: no {state_path} to continue')
+        state = torch.load(state_path, map_location=args.device, weights_only=True)
+        model = SaladNet(config_from_plain(state['config']))
+        model.load_state_dict(state['model'])
+        return model.to(args.device), state
+    if state_path.exists():
+        raise ConfigError(f'{state_path} exists: --resume to continue it, or another OUT')
+    cfg = measure_rows(samples, SaladConfig())
+    cfg.validate()
+    return SaladNet(cfg).to(args.device), {'step': 0, 'command': ' '.join(sys.argv)}
+
+
+def run(args: argparse.Namespace) -> int:
+    cache = args.cache or args.out / 'cache'
+    args.out.mkdir(parents=True, exist_ok=True)
+    build_cache(cache, args.drives, args.frames, SaladConfig(), args.workers)
+    samples = ShardSamples(cache.glob(f'*{SHARD_SUFFIX}'))
+    if not len(samples):
+        raise ConfigError(f'no training images in {cache}')
+    model, state = _start(args, samples)
+    criterion = SaladCriterion(model.cfg).to(args.device)
+    optimiser = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
+    if 'optimiser' in state:
+        optimiser.load_state_dict(state['optimiser'])
+    dataset = SaladDataset(samples, model.cfg.camera, SaladAugment())
+    step, stop = state['step'], min(args.steps, state['step'] + (args.slice_steps or args.steps))
+    print(f'{len(samples)} images; steps {step}..{stop} of {args.steps}', file=sys.stderr)
+    model.train()
+    while step < stop:
+        dataset.epoch = step // max(len(dataset) // args.batch, 1)
+        loader = DataLoader(dataset, args.batch, shuffle=True, drop_last=True,
+                            num_workers=args.workers,
+                            generator=torch.Generator().manual_seed(dataset.epoch))
+        for batch in loader:
+            for group in optimiser.param_groups:
+                group['lr'] = learning_rate(step, args.steps, args.lr)
+            batch = {k: v.to(args.device) for k, v in batch.items()}
+            losses = criterion(*model(batch['image']), batch)
+            optimiser.zero_grad(set_to_none=True)
+            losses['loss'].backward()
+            optimiser.step()
+            step += 1
+            if step % 50 == 0 or step == stop:
+                print(f'step {step} ' + ' '.join(f'{k} {float(v.detach()):.4f}' for k, v in
+                                                 losses.items()), file=sys.stderr, flush=True)
+            if step % args.save_every == 0 or step == stop:
+                _save(args, model, optimiser, state, step, len(samples))
+            if step >= stop:
+                break
+    return 0
+
+
+def _save(args: argparse.Namespace, model: SaladNet, optimiser: torch.optim.Optimizer,
+          state: dict, step: int, images: int) -> None:
+    state.update(step=step, model=model.state_dict(), optimiser=optimiser.state_dict(),
+                 config=dataclasses.asdict(model.cfg))
+    tmp = args.out / '.state.pt.tmp'
+    torch.save(state, tmp)
+    tmp.replace(args.out / 'state.pt')
+    save_salad(args.out / 'salad.pt', model, state['command'],
+               {'steps': step, 'images': images, 'drives': args.drives, 'frames': args.frames})
