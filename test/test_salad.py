@@ -5,14 +5,19 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 import torch
 from scipy.spatial import cKDTree
 
 from fhld_ros.salad.augment import flip, zoom
+from fhld_ros.salad.checkpoint import SaladCheckpointError, load_salad, save_salad
 from fhld_ros.salad.config import SaladConfig
 from fhld_ros.salad.decode import decode
+from fhld_ros.salad.detector import SaladDetector
+from fhld_ros.salad.evaluate import score
 from fhld_ros.salad.losses import SaladCriterion
 from fhld_ros.salad.model import SaladNet
+from fhld_ros.salad.sample import CameraLaneSample
 from fhld_ros.salad.targets import lane_targets, row_statistics
 from fhld_ros.salad.virtual_camera import VirtualCamera
 
@@ -128,3 +133,38 @@ def test_the_model_learns_a_road():
         first = first if first is not None else float(losses['loss'].detach())
     last = float(losses['loss'].detach())
     assert np.isfinite(last) and last < 0.5 * first, (first, last)
+
+
+def test_checkpoints_round_trip_with_weights_only_and_refuse_other_files(tmp_path):
+    targets = lane_targets(_road(), CAMERA)
+    model = SaladNet(_config_for(targets.depth[None], targets.depth_mask[None])).eval()
+    save_salad(tmp_path / 'salad.pt', model, 'test', {'steps': 0})
+    loaded, info = load_salad(tmp_path / 'salad.pt')
+    assert loaded.cfg == model.cfg and info['train_command'] == 'test'
+    x = torch.zeros(1, 3, CAMERA.height, CAMERA.width, dtype=torch.uint8)
+    with torch.inference_mode():
+        torch.testing.assert_close(loaded(x)[1], model(x)[1])
+    (tmp_path / 'bad.pt').write_bytes(b'not a checkpoint')
+    for path, message in ((tmp_path / 'bad.pt', 'cannot be read'),
+                          (tmp_path / 'none.pt', 'does not exist')):
+        with pytest.raises(SaladCheckpointError, match=message):
+            load_salad(path)
+    torch.save({'format': 'salad-checkpoint', 'format_version': 1, 'config': {'camera': {}},
+                'state_dict': {}}, tmp_path / 'empty.pt')
+    with pytest.raises(SaladCheckpointError, match='does not fit'):
+        load_salad(tmp_path / 'empty.pt')
+
+
+def test_detector_and_scoring_run_on_any_camera(tmp_path):
+    targets = lane_targets(_road(), CAMERA)
+    save_salad(tmp_path / 'salad.pt',
+               SaladNet(_config_for(targets.depth[None], targets.depth_mask[None])), 'test')
+    detector = SaladDetector(tmp_path / 'salad.pt')
+    k = np.array([[1000.0, 0, 800], [0, 1000, 450], [0, 0, 1]])
+    image = np.full((900, 1600, 3), 90, dtype=np.uint8)
+    lanes, scores = detector(image, k)
+    assert len(lanes) == len(scores) and set(detector.timings_ms) == {
+        'warp_ms', 'model_ms', 'decode_ms'}
+    rows = score(detector, [CameraLaneSample(image, k, _road(), 'grey')])
+    assert set(rows) == {'tau_0.15', 'tau_0.30', 'tau_0.50', 'official'}
+    assert rows['tau_0.30']['gt'] == 4 and rows['tau_0.30']['images'] == 1

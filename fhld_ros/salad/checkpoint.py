@@ -7,6 +7,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from fhld_ros.dataclass_dict import to_plain
@@ -36,14 +37,23 @@ def config_from_plain(data: dict[str, Any]) -> SaladConfig:
                                          for k, v in data.items()})
 
 
+def _builtin(value: Any) -> Any:
+    """numpy scalars as Python numbers (weights_only loading refuses numpy objects)."""
+    if isinstance(value, dict):
+        return {key: _builtin(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_builtin(item) for item in value]
+    return value.item() if isinstance(value, np.generic) else value
+
+
 def save_salad(path: str | os.PathLike, model: SaladNet, train_command: str,
                meta: dict[str, Any] | None = None) -> None:
     """Write atomically (a temporary file renamed over path)."""
     path = Path(path)
     payload = {'format': FORMAT, 'format_version': FORMAT_VERSION,
-               'config': to_plain(model.cfg), 'state_dict': model.state_dict(),
+               'config': _builtin(to_plain(model.cfg)), 'state_dict': model.state_dict(),
                'code_version': code_version(), 'train_command': train_command,
-               'meta': to_plain(meta or {})}
+               'meta': _builtin(to_plain(meta or {}))}
     tmp = path.with_name(f'.{path.name}.tmp')
     torch.save(payload, tmp)
     os.replace(tmp, path)
