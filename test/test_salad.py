@@ -9,6 +9,7 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
+from fhld_ros.errors import ConfigError
 from fhld_ros.salad.augment import flip, zoom
 from fhld_ros.salad.checkpoint import SaladCheckpointError, load_salad, save_salad
 from fhld_ros.salad.config import SaladConfig
@@ -168,3 +169,14 @@ def test_detector_and_scoring_run_on_any_camera(tmp_path):
     rows = score(detector, [CameraLaneSample(image, k, _road(), 'grey')])
     assert set(rows) == {'tau_0.15', 'tau_0.30', 'tau_0.50', 'official'}
     assert rows['tau_0.30']['gt'] == 4 and rows['tau_0.30']['images'] == 1
+
+
+def test_config_values_are_checked_where_declared():
+    SaladConfig().validate()
+    for bad, message in (({'seg_threshold': 1.5}, 'seg_threshold must be'),
+                         ({'widths': (16, 32)}, 'widths must be'),
+                         ({'row_shift': (1.0,), 'row_scale': (1.0,)}, 'one per output row'),
+                         ({'camera': VirtualCamera(width=500)}, 'multiple of 32'),
+                         ({'camera': VirtualCamera(focal=-1.0)}, 'camera.focal must be')):
+        with pytest.raises(ConfigError, match=message):
+            dataclasses.replace(SaladConfig(), **bad).validate()

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from fhld_ros.dataclass_dict import check_fields, documented
+from fhld_ros.errors import ConfigError
 from fhld_ros.salad.virtual_camera import VirtualCamera
 
 STRIDE = 4  # output cells per input pixel, each way (the paper's H/4 x W/4 maps)
@@ -11,32 +13,49 @@ STRIDE = 4  # output cells per input pixel, each way (the paper's H/4 x W/4 maps
 @dataclass(frozen=True)
 class SaladConfig:
     camera: VirtualCamera = field(default_factory=VirtualCamera)
-    widths: tuple[int, ...] = (16, 32, 64, 96, 128)  # stem, then strides 4, 8, 16, 32
-    decoder_dim: int = 48
-    attention_layers: int = 1  # self-attention over the stride-32 cells (global context)
+    widths: tuple[int, ...] = documented(
+        (16, 32, 64, 96, 128), 'channels of the stem, then of the stages at strides 4 to 32',
+        range='[4, 1024]', length=5, kind=int)
+    decoder_dim: int = documented(48, 'channels of the fused stride-4 features',
+                                  range='[4, 1024]')
+    attention_layers: int = documented(
+        1, 'self-attention layers over the stride-32 cells (global context)', range='[0, 8]')
     # depth z = row_shift[r] + row_scale[r] * dz per output row r (paper eq. 3): the mean and
     # spread of the training set's depths in that row, measured before training (targets.py)
-    row_shift: tuple[float, ...] = ()
-    row_scale: tuple[float, ...] = ()
-    seg_threshold: float = 0.5  # lane cell when its probability exceeds this
-    score_threshold: float = 0.5  # a decoded lane is kept when its mean probability does
-    max_depth_m: float = 60.0  # lane points decoded farther away are dropped
-    pos_weight: float = 4.0  # BCE weight of the (rare) lane cells
-    depth_weight: float = 1.0  # lambda of paper eq. 6, for the depth residual
-    offset_weight: float = 1.0  # lambda of paper eq. 6, for du, dv
+    row_shift: tuple[float, ...] = documented((), 'depth shift per output row (m)',
+                                              range='[0, inf)', kind=float)
+    row_scale: tuple[float, ...] = documented((), 'depth scale per output row (m)',
+                                              range='(0, inf)', kind=float)
+    seg_threshold: float = documented(0.5, 'a cell is a lane cell above this probability',
+                                      range='(0, 1)')
+    score_threshold: float = documented(
+        0.5, 'a decoded lane is kept when its mean cell probability reaches this',
+        range='[0, 1]')
+    max_depth_m: float = documented(60.0, 'lane points decoded farther away are dropped',
+                                    range='(1, 1000]')
+    pos_weight: float = documented(4.0, 'BCE weight of the (rare) lane cells',
+                                   range='(0, 1000]')
+    depth_weight: float = documented(1.0, 'lambda of paper eq. 6 for the depth residual',
+                                     range='[0, 1000]')
+    offset_weight: float = documented(1.0, 'lambda of paper eq. 6 for du, dv',
+                                      range='[0, 1000]')
 
     @property
     def grid(self) -> tuple[int, int]:
         """(width, height) of the output maps."""
         return self.camera.width // STRIDE, self.camera.height // STRIDE
 
-    def validate(self) -> None:
-        w, h = self.grid
+    def validate(self, where: str = '') -> None:
+        """ConfigError naming every field out of its declared range, and the rules between
+        fields."""
+        check_fields(self.camera, f'{where}.camera' if where else 'camera')
+        check_fields(self, where)
         if self.camera.width % 32 or self.camera.height % 32:
-            raise ValueError(f'the virtual camera must be a multiple of 32 px each way, got '
-                             f'{self.camera.width} x {self.camera.height}')
+            raise ConfigError(f'the camera must be a multiple of 32 px each way (the encoder '
+                              f'halves it five times), got {self.camera.width} x '
+                              f'{self.camera.height}')
+        h = self.grid[1]
         if self.row_shift and (len(self.row_shift) != h or len(self.row_scale) != h):
-            raise ValueError(f'row_shift and row_scale need {h} values (one per output row), '
-                             f'got {len(self.row_shift)} and {len(self.row_scale)}')
-        if self.row_scale and min(self.row_scale) <= 0:
-            raise ValueError('row_scale values must be positive')
+            raise ConfigError(f'row_shift and row_scale need {h} values (one per output row '
+                              f'of the {self.camera.height} px camera), got '
+                              f'{len(self.row_shift)} and {len(self.row_scale)}')

@@ -13,16 +13,19 @@ from dataclasses import dataclass
 import numpy as np
 from PIL import Image
 
+from fhld_ros.dataclass_dict import documented
+
 
 @dataclass(frozen=True)
 class VirtualCamera:
     """width x height pixels, focal length `focal` px, principal point at the horizontal centre
     (so a horizontal flip is exact) and `cy` px from the top (most rows below the horizon)."""
 
-    width: int = 480
-    height: int = 256
-    focal: float = 400.0
-    cy: float = 89.5
+    # multiples of 32: the encoder halves the image five times
+    width: int = documented(480, 'image width (px)', range='[64, 4096]')
+    height: int = documented(256, 'image height (px)', range='[64, 4096]')
+    focal: float = documented(400.0, 'focal length (px)', range='(0, 100000]')
+    cy: float = documented(89.5, 'principal point, px from the top', range='[0, 4096]')
 
     @property
     def cx(self) -> float:
