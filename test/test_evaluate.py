@@ -12,7 +12,12 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 
 from fhld_ros.bagio import BagWriter
 from fhld_ros.cli import main
-from fhld_ros.evaluation.evaluate import window_frame
+from fhld_ros.evaluation.metrics import clip_polyline_to_square
+from fhld_ros.evaluation.window_region import (
+    clip_polyline_to_polygon,
+    window_frame,
+    window_region,
+)
 from msg_adapters.lanes import lanes_to_marker_array
 
 MARKERS = 'visualization_msgs/msg/MarkerArray'
@@ -102,6 +107,50 @@ def test_window_frame_matches_bev_outline() -> None:
     assert half == pytest.approx(HALF)
     with pytest.raises(ValueError):
         window_frame(outline(T)[[0, 2, 1, 3, 4]])
+    assert window_region(outline(T))[3] is None  # a square: clipped to as ever
+
+
+def test_polygon_clip_of_a_square_is_the_square_clip() -> None:
+    rng = np.random.default_rng(0)
+    square = np.array([[-HALF, -HALF], [HALF, -HALF], [HALF, HALF], [-HALF, HALF]])
+    for _ in range(50):
+        lane = np.cumsum(rng.normal(0.0, 6.0, (12, 3)), axis=0) + rng.normal(0.0, 5.0, 3)
+        want = clip_polyline_to_square(lane, HALF)
+        got = clip_polyline_to_polygon(lane, square)
+        assert len(got) == len(want)
+        for g, w in zip(got, want):
+            np.testing.assert_allclose(g, w, atol=1e-9)
+
+
+def trapezoid(T: np.ndarray) -> np.ndarray:
+    """A camera's footprint: 4 m wide 2 m ahead, 30 m wide 20 m ahead (near-right first,
+    counter-clockwise, closed), posed by T."""
+    c = np.array([[2, -2, 0], [20, -15, 0], [20, 15, 0], [2, 2, 0], [2, -2, 0]], dtype=float)
+    return c @ T[:3, :3].T + T[:3, 3]
+
+
+def test_polygon_window_clips_gt_to_the_region(tmp_path: Path, gt_bag: Path,
+                                               capsys: pytest.CaptureFixture) -> None:
+    # lanes 3.5 m apart: left and right leave the trapezoid near the camera, the middle runs
+    # through it; predicted: the GT where the camera sees it, and a lane outside it
+    outside = np.column_stack([np.linspace(0, 12, 13), np.full(13, 14.0), np.full(13, -1.3)])
+    frames = []
+    for k, T in enumerate(POSES):
+        region = trapezoid(T)
+        seen = [part for lane in road() for part in clip_polyline_to_polygon(
+            lane, region[:-1, :2])]
+        frames.append(((k + 1) * SEC // 10, seen + [outside @ T[:3, :3].T + T[:3, 3]], region))
+    origin, rot, half, polygon = window_region(frames[1][2])
+    np.testing.assert_allclose(rot, POSES[1][:3, :3], atol=1e-12)  # x: into it, forward
+    np.testing.assert_allclose(origin[:2], POSES[1][:2, 3] + [11.0, 0.0])
+    assert half == pytest.approx(15.0) and polygon.shape == (4, 2)
+    result = run_json(capsys, str(write_pred(tmp_path / 'pred', frames)), str(gt_bag))
+    assert all(v == pytest.approx(100.0) for v in result['point'].values())
+    assert result['once']['F1'] == pytest.approx(100.0)
+    # the same lanes in the bounding square: the GT the camera does not see counts as missed
+    squares = [(s, lanes, outline(T)) for (s, lanes, _), T in zip(frames, POSES)]
+    result = run_json(capsys, str(write_pred(tmp_path / 'square', squares)), str(gt_bag))
+    assert result['point']['R@30'] < 70
 
 
 def test_identical_lanes_score_100_with_table_csv_and_plots(
@@ -217,9 +266,11 @@ def test_frames_without_bev_window(tmp_path: Path, gt_bag: Path,
 def test_malformed_bev_window(tmp_path: Path, gt_bag: Path,
                               capsys: pytest.CaptureFixture) -> None:
     frames = pred_frames()
-    frames[2] = (frames[2][0], frames[2][1], frames[2][2] * [1.0, 2.0, 1.0])
-    err = run_error(capsys, str(write_pred(tmp_path / 'pred', frames)), str(gt_bag))
-    assert 'message 2' in err and 'not a closed square' in err
+    square = frames[2][2]
+    for k, order in enumerate(([0, 2, 1, 3, 4], [0, 1, 2, 3, 3], [0, 1, 0, 1, 0])):
+        frames[2] = (frames[2][0], frames[2][1], square[order])  # crossing, open, no area
+        err = run_error(capsys, str(write_pred(tmp_path / f'pred{k}', frames)), str(gt_bag))
+        assert 'message 2' in err and 'not a closed square or simple polygon' in err, order
 
 
 def test_frame_id_mismatch(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

@@ -4,8 +4,10 @@ Every /lanes message is one frame. Its GT is the latest /lanes_gt message at or 
 stamp (else the first one, if it comes less than GT_LEAD_NS later). Both are brought into that
 frame's window frame, derived from the bev_window outline (bev.py corner order: rear-right,
 front-right, front-left, rear-left, back to the first; so corner 0 -> 1 is forward, 0 -> 3 is
-left), clipped to the window square and scored with fhld_ros.evaluation.metrics. Counts are
-summed over frames; percentages come last.
+left), clipped to the window square and scored with fhld_ros.evaluation.metrics. An outline that
+is no square but a closed simple polygon (fhld autolabel: the ground its camera sees) is the
+region itself: lanes are clipped to it in top view, in a frame whose x axis points into it from
+its closing edge (window_region). Counts are summed over frames; percentages come last.
 
 --per-frame and --plots follow bagio's output rule: an existing file is refused unless
 --overwrite (which replaces only a regular file), and no output may be, contain or lie inside
@@ -33,6 +35,7 @@ from fhld_ros.bagio import (
 )
 from fhld_ros.errors import ConfigError
 from fhld_ros.evaluation import metrics
+from fhld_ros.evaluation.window_region import clip_polyline_to_polygon, window_region
 
 MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
 GT_LEAD_NS = 1_000_000_000  # a /lanes message may precede the first /lanes_gt by this much
@@ -68,29 +71,7 @@ class Frame:
     gt: list[np.ndarray]
     point: metrics.PointCounts
     once: metrics.LaneCounts
-
-
-def window_frame(outline: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """(origin (3,), rotation (3, 3) whose columns are the window axes, half size) of an outline.
-
-    Raises ValueError unless the outline is a closed square.
-    """
-    pts = np.asarray(outline, dtype=np.float64)
-    if pts.shape != (5, 3) or not np.isfinite(pts).all():
-        raise ValueError(f'outline must be 5 finite points, got shape {pts.shape}')
-    forward, left = pts[1] - pts[0], pts[3] - pts[0]
-    side = np.linalg.norm(forward)
-    tol = 1e-3 * max(side, 1e-9)
-    square = (side > 0 and abs(np.linalg.norm(left) - side) <= tol
-              and abs(forward @ left) <= tol * side
-              and np.linalg.norm(pts[2] - pts[1] - left) <= tol
-              and np.linalg.norm(pts[4] - pts[0]) <= tol)
-    if not square:
-        raise ValueError('outline is not a closed square')
-    x_axis = forward / side
-    y_axis = left / np.linalg.norm(left)
-    rot = np.column_stack([x_axis, y_axis, np.cross(x_axis, y_axis)])
-    return pts[:4].mean(axis=0), rot, side / 2
+    outline: np.ndarray | None = None  # (M, 2) closed, window frame: a polygon window's shape
 
 
 def _read_lanesets(path: str, topic: str, role: str) -> list[Any]:
@@ -138,11 +119,16 @@ def _to_window(lanes: list[np.ndarray], origin: np.ndarray, rot: np.ndarray) -> 
 
 
 def _score_frame(k: int, pred: Any, gt: Any, args: argparse.Namespace) -> Frame:
-    origin, rot, half = window_frame(pred.window_outline)
-    gt_lanes = metrics.clip_lanes_to_square(_to_window(gt.lanes, origin, rot), half)
+    origin, rot, half, polygon = window_region(pred.window_outline)
+
+    def clip(lane: np.ndarray) -> list[np.ndarray]:
+        if polygon is None:
+            return metrics.clip_polyline_to_square(lane, half)
+        return clip_polyline_to_polygon(lane, polygon)
+    gt_lanes = [part for lane in _to_window(gt.lanes, origin, rot) for part in clip(lane)]
     pred_lanes, scores = [], []
     for lane, conf in zip(_to_window(pred.lanes, origin, rot), pred.confidences):
-        pieces = metrics.clip_polyline_to_square(lane, half)
+        pieces = clip(lane)
         pred_lanes += pieces
         scores += [float(conf)] * len(pieces)  # a split lane keeps its confidence
     point = metrics.point_counts(pred_lanes, gt_lanes)
@@ -150,7 +136,8 @@ def _score_frame(k: int, pred: Any, gt: Any, args: argparse.Namespace) -> Frame:
         once = metrics.once_counts_official(pred_lanes, scores, gt_lanes, args.score_thresh)
     else:
         once = metrics.once_counts(pred_lanes, gt_lanes, half)
-    return Frame(k, pred.stamp_ns, gt.stamp_ns, half, pred_lanes, gt_lanes, point, once)
+    ring = None if polygon is None else np.vstack([polygon, polygon[:1]])
+    return Frame(k, pred.stamp_ns, gt.stamp_ns, half, pred_lanes, gt_lanes, point, once, ring)
 
 
 def evaluate_bags(args: argparse.Namespace) -> list[Frame]:
@@ -238,14 +225,17 @@ def check_outputs(args: argparse.Namespace) -> None:
 
 
 def draw_top_view(path: Path, gt: Sequence[np.ndarray], pred: Sequence[np.ndarray],
-                  half: float, title: str, background: np.ndarray | None = None) -> None:
+                  half: float, title: str, background: np.ndarray | None = None,
+                  outline: np.ndarray | None = None) -> None:
     """A PNG of window-frame lanes seen from above, forward up and left to the left: GT (green,
-    wide) under predictions (red), the ego, and the window outline or a (H, W) raster behind."""
+    wide) under predictions (red), the ego, and the window outline (the square, else a closed
+    (M, 2) polygon) or a (H, W) raster behind."""
     fig = Figure(figsize=(7, 7))  # no pyplot: no GUI backend, no global figure registry
     ax = fig.subplots()
     if background is None:
-        ax.plot([-half, half, half, -half, -half], [-half, -half, half, half, -half],
-                color='0.6', lw=1)
+        ring = outline if outline is not None else \
+            np.array([[-half, -half], [half, -half], [half, half], [-half, half], [-half, -half]])
+        ax.plot(ring[:, 1], ring[:, 0], color='0.6', lw=1)
     else:  # raster rows: y, cols: x -> image rows: x forward (up), cols: y left (left)
         ax.imshow(np.sqrt(background.T[::-1, ::-1]), cmap='gray', vmax=0.8,
                   extent=(half, -half, -half, half))
@@ -283,7 +273,7 @@ def plot_worst(frames: list[Frame], out_dir: str, n: int, overwrite: bool = Fals
                  f'@10 cm P {s["P@10"]:.1f} R {s["R@10"]:.1f} F1 {s["F1@10"]:.1f}   '
                  f'@30 cm F1 {s["F1@30"]:.1f}')
         write_file_atomically(path, lambda tmp, f=f, title=title: draw_top_view(
-            tmp, f.gt, f.pred, f.half_size, title))
+            tmp, f.gt, f.pred, f.half_size, title, outline=f.outline))
     return [path for _, path in worst]
 
 
