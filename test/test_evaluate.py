@@ -144,9 +144,11 @@ def test_polygon_window_clips_gt_to_the_region(tmp_path: Path, gt_bag: Path,
     np.testing.assert_allclose(rot, POSES[1][:3, :3], atol=1e-12)  # x: into it, forward
     np.testing.assert_allclose(origin[:2], POSES[1][:2, 3] + [11.0, 0.0])
     assert half == pytest.approx(15.0) and polygon.shape == (4, 2)
-    result = run_json(capsys, str(write_pred(tmp_path / 'pred', frames)), str(gt_bag))
+    result = run_json(capsys, str(write_pred(tmp_path / 'pred', frames)), str(gt_bag),
+                      '--plots', str(tmp_path / 'plots'), '--worst', '1')
     assert all(v == pytest.approx(100.0) for v in result['point'].values())
     assert result['once']['F1'] == pytest.approx(100.0)
+    assert len(list((tmp_path / 'plots').glob('*.png'))) == 1  # the polygon drawn
     # the same lanes in the bounding square: the GT the camera does not see counts as missed
     squares = [(s, lanes, outline(T)) for (s, lanes, _), T in zip(frames, POSES)]
     result = run_json(capsys, str(write_pred(tmp_path / 'square', squares)), str(gt_bag))

@@ -229,7 +229,7 @@ def draw_top_view(path: Path, gt: Sequence[np.ndarray], pred: Sequence[np.ndarra
                   outline: np.ndarray | None = None) -> None:
     """A PNG of window-frame lanes seen from above, forward up and left to the left: GT (green,
     wide) under predictions (red), the ego, and the window outline (the square, else a closed
-    (M, 2) polygon) or a (H, W) raster behind."""
+    (M, 2) polygon, then without the ego) or a (H, W) raster behind."""
     fig = Figure(figsize=(7, 7))  # no pyplot: no GUI backend, no global figure registry
     ax = fig.subplots()
     if background is None:
@@ -245,7 +245,8 @@ def draw_top_view(path: Path, gt: Sequence[np.ndarray], pred: Sequence[np.ndarra
     for i, lane in enumerate(pred):
         ax.plot(lane[:, 1], lane[:, 0], color='red', lw=1.3,
                 label='detected' if i == 0 else None)
-    ax.plot([0], [0], marker='^', color='tab:cyan', ms=9, label='ego')
+    if outline is None:  # a polygon's frame is centred on its bounding box, not on the ego
+        ax.plot([0], [0], marker='^', color='tab:cyan', ms=9, label='ego')
     ax.set_xlim(half, -half)
     ax.set_ylim(-half, half)
     ax.set_aspect('equal')
