@@ -1,4 +1,4 @@
-"""Labelled bags as training data (training/bag_source.py): windows, weighted draws, training."""
+"""Labelled bags as training data (data/bag_source.py): windows, weighted draws, training."""
 from __future__ import annotations
 
 import dataclasses

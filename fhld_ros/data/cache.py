@@ -12,7 +12,7 @@ reused by every training run (docs/design.md §5). One shard per simulator seed,
 * ``lane_ids``      (L,) int64 scene line index of each lane
 * ``window_to_odom`` (n, 4, 4) float64, ``stamps_ns`` (n,) int64, ``sweeps`` (n,) int64
 * ``meta``          JSON string: seed, scenario (sensor, topology, ...), road class, raster spec
-                    (shards of labelled bags, training/bag_source.py: the bag and shard index)
+                    (shards of labelled bags, data/bag_source.py: the bag and shard index)
 
 Shards are written to a temporary file and renamed, so a shard either exists complete or not at
 all; a build skips existing shards and so resumes after an interruption. The directory's

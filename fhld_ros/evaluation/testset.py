@@ -22,7 +22,7 @@ false lanes (published, not matched by the ONCE metric) per window.
 `--condition` makes the same seeds' windows under one real-sensor variation (CONDITIONS,
 docs/testset_conditions.md): intensity gain or units, worn paint, no markings, single sweeps
 without odometry. The report records it and the median paint / asphalt contrast of the
-windows' newest sweeps (training/samples.py:paint_contrast).
+windows' newest sweeps (data/samples.py:paint_contrast).
 """
 from __future__ import annotations
 

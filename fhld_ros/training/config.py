@@ -15,7 +15,7 @@ states only what it changes (config/experiments/).
 and the model's raster); the raster's resolution and intensity encoding are the model's.
 
 ``data.bags`` adds labelled bags (/points, /odom, /lanes_gt) as training windows beside the
-simulator cache (training/bag_source.py), each entry a mapping:
+simulator cache (data/bag_source.py), each entry a mapping:
 
     bags:
       - path: out/autolabel/drive_0      # the bag (checked when the config loads)
@@ -72,7 +72,7 @@ class DataSection:
     test_windows_per_seed: int = documented(5, "held-out windows per seed (at the model's "
                                             'raster)', range=COUNT)
     cache_workers: int = documented(2, 'cache-building processes', range=NON_NEGATIVE)
-    # labelled bags as more training windows (module doc; training/bag_source.py), cached in
+    # labelled bags as more training windows (module doc; data/bag_source.py), cached in
     # <parent of train_cache>/bags/ by the same --cache-only step
     bags: tuple[LabelledBag, ...] = documented((), 'labelled bags (module doc)')
     sim_weight: float = documented(1.0, "the simulator cache's weight among the sources (0: "

@@ -1,10 +1,10 @@
 """`fhld train --config CONFIG [--resume] [--out DIR]`: FHLD training on cached simulator windows.
 
 Data: the training cache (larger rasters, augmented and cropped to the model's input) and a
-held-out test cache of other seeds at the model's exact raster (training/cache.py); missing
+held-out test cache of other seeds at the model's exact raster (data/cache.py); missing
 shards are simulated first (single process; under torchrun the cache must exist, build it with
 ``--cache-only``). ``data.bags`` adds the windows of labelled bags, drawn beside the simulator's
-by weight (training/bag_source.py, cached by the same step). The loop, evaluation and
+by weight (data/bag_source.py, cached by the same step). The loop, evaluation and
 checkpoints are training/loop.py: best.pt by F1@10 on the test cache, last.pt with optimizer
 and RNG state besides. Both are fhld_ros.model.checkpoint files (torch.load(weights_only=True))
 with the training config and command line inside; best.pt loads with load_checkpoint like the
