@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import uniform_filter1d
 
+from fhld_ros.annotation.footprint import camera_footprint, ground_plane
 from fhld_ros.annotation.ground import GroundSurface, below_sensor, segment_ground
 from fhld_ros.annotation.lane_regions import LaneMembers, lane_members
 from fhld_ros.annotation.recovery import recover_lane
@@ -52,7 +53,7 @@ class LabelledImage:
     T_out_camera: np.ndarray  # (4, 4) camera pose in the output frame
     lanes: list[np.ndarray]  # (K, 3) in the output frame
     ids: list[int]
-    outline: np.ndarray  # (5, 3) the square ahead of the camera its ground returns reach
+    outline: np.ndarray  # (5, 3) the ground the camera sees, as far as its ground returns reach
     labels: ImageLabels
     ground: np.ndarray  # (N, 3) ground returns the camera sees, output frame
     ground_contrast: np.ndarray  # (N,)
@@ -187,10 +188,14 @@ class Autolabeler:
                     ids.append(label_id)
         self.counts.images += 1
         self.counts.lanes += len(lanes)
-        z = float(np.median(xyz[:, 2])) if xyz.size else float(T_out_camera[2, 3])
+        # the window is what the camera sees of the ground plane of its returns in view, so
+        # that eval does not count lines outside the image as missed
+        outline = camera_footprint(calib, T_out_camera, *ground_plane(xyz[idx]), reach)
+        if outline is None:  # it sees too little of that plane: the square its returns reach
+            outline = window_outline(T_out_camera[:2, 3], forward, reach,
+                                     float(np.median(xyz[idx, 2])))
         frame = self.cloud_frame if self.poses is None else self.poses.frame_id
-        return LabelledImage(image.stamp_ns, str(frame), T_out_camera, lanes, ids,
-                             window_outline(T_out_camera[:2, 3], forward, reach, z),
+        return LabelledImage(image.stamp_ns, str(frame), T_out_camera, lanes, ids, outline,
                              image, xyz[idx], contrast[idx])
 
 

@@ -6,11 +6,13 @@ calibration from /camera/camera_info + /tf_static, or --calib YAML, and its imag
 /camera/camera_info or /camera/image_raw (without either, labels are matched to /points
 stamps). Each label file (`<stamp_ns>.json`) labels the image at that stamp. OUT_BAG gets one
 /lanes message (the /lanes contract: odometry frame, else the cloud frame) per labelled image,
-so `fhld eval OUT_BAG IN_BAG` scores it against /lanes_gt. --once-json DIR also writes the
-ONCE-3DLanes layout (lanes in the camera frame) per image. --lane-map makes OUT_BAG a training
-bag as well (training/bag_source.py): the drive's /points and /odom copied, and on /lanes_gt one
-message, stamped with the earliest sweep, holding the lane map of all images
-(annotation/lane_map.py). OUT_BAG and --once-json follow bagio's output rule.
+its bev_window the ground the camera sees up to the depth its ground returns reach
+(annotation/footprint.py), so `fhld eval OUT_BAG IN_BAG` scores it against the /lanes_gt lines
+the camera could label. --once-json DIR also writes the ONCE-3DLanes layout (lanes in the
+camera frame) per image. --lane-map makes OUT_BAG a training bag as well
+(training/bag_source.py): the drive's /points and /odom copied, and on /lanes_gt one message,
+stamped with the earliest sweep, holding the lane map of all images (annotation/lane_map.py).
+OUT_BAG and --once-json follow bagio's output rule.
 """
 from __future__ import annotations
 
