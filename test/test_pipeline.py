@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fhld_ros.parameters import DetectorParams
 from fhld_ros.lane_output import LaneIdTracker, ego_lane_bounds
+from fhld_ros.parameters import DetectorParams
 from fhld_ros.pipeline import LanePipeline
 from fhld_ros.pose_buffer import PoseBuffer
 from msg_adapters.family import rosbags_family
