@@ -10,7 +10,7 @@ its bev_window the ground the camera sees up to the depth its ground returns rea
 (annotation/footprint.py), so `fhld eval OUT_BAG IN_BAG` scores it against the /lanes_gt lines
 the camera could label. --once-json DIR also writes the ONCE-3DLanes layout (lanes in the
 camera frame) per image. --lane-map makes OUT_BAG a training bag as well
-(training/bag_source.py): the drive's /points and /odom copied, and on /lanes_gt one message,
+(data/bag_source.py): the drive's /points and /odom copied, and on /lanes_gt one message,
 stamped with the earliest sweep, holding the lane map of all images (annotation/lane_map.py).
 OUT_BAG and --once-json follow bagio's output rule.
 """
