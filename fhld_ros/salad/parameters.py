@@ -1,0 +1,87 @@
+"""camera_lane_detector's parameters, declared once for the node, `fhld replay --detector salad`
+and parameter files (a `camera_lane_detector: ros__parameters:` section).
+
+Each field's metadata 'doc' is its ROS ParameterDescriptor text; ranges and choices sit beside
+it and are checked by the project's one checker (dataclass_dict.field_problems). No rclpy here.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from fhld_ros.dataclass_dict import documented, field_problems, from_dict
+from fhld_ros.errors import ConfigError
+
+NODE_NAME = 'camera_lane_detector'
+IDENTITY = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class CameraParams:
+    """Every parameter of camera_lane_detector; field metadata 'doc' is the ROS descriptor."""
+
+    image_topic: str = documented(
+        'camera/image_raw', 'input sensor_msgs/Image topic (rgb8, bgr8, rgba8, bgra8 or mono8; '
+        'rectified: SALAD ignores lens distortion)', length='[1, inf)')
+    camera_info_topic: str = documented(
+        'camera/camera_info', 'input sensor_msgs/CameraInfo topic; its newest message gives '
+        'the intrinsics of each image', length='[1, inf)')
+    lanes_topic: str = documented(
+        'lanes', 'output MarkerArray topic; ego lane Paths go to <lanes_topic>/ego_left|right',
+        length='[1, inf)')
+    checkpoint: str = documented(
+        '', 'SALAD weights (.pt); empty = the shipped fhld_ros/checkpoints/salad.pt')
+    model_threads: int = documented(
+        0, 'CPU threads for the model; 0 = auto: 1 (two OpenMP threads beside the executor and '
+        'other work on a 2-core CPU ran the model up to 40x slower)', range='[0, 1024]')
+    rate_hz: float = documented(
+        10.0, 'detection rate on image stamps: an image at least 0.9 / rate_hz newer than the '
+        'last detected one is detected, the others are skipped', range='(0, 1000]')
+    score_threshold: float = documented(
+        0.5, 'minimum lane score to publish (the checkpoint decodes lanes from its own '
+        'threshold up)', range='[0, 1]')
+    output_frame: str = documented(
+        '', "frame of the published lanes; '' = the image's frame (the camera's optical "
+        'frame: x right, y down, z forward)')
+    camera_to_output: tuple[float, ...] = documented(
+        IDENTITY, "the camera's optical frame in output_frame, [x, y, z, roll, pitch, yaw] "
+        '(metres, radians, ROS fixed-axis RPY; a /tf_static transform output_frame -> camera). '
+        'A camera level at 1.5 m over base_link: [0, 0, 1.5, -1.5708, 0, -1.5708]', length=6)
+    camera_height_m: float = documented(
+        1.5, 'height of the camera over the road, used for the searched-area outline when the '
+        "detected lanes do not span a plane (the outline lies on the plane they span)",
+        range='[0.1, 100]')
+    input_reliability: str = documented(
+        'auto', "image subscription reliability: 'auto' (reliable, switching to best effort "
+        "while a best-effort publisher exists), 'reliable' or 'best_effort'",
+        choices=('auto', 'reliable', 'best_effort'))
+
+    def __post_init__(self) -> None:
+        """ConfigError naming every value out of its declared range (all of them, one line)."""
+        problems = field_problems(self)
+        if not problems and self.camera_to_output != IDENTITY and not self.output_frame:
+            problems.append('camera_to_output needs output_frame: the frame it maps the '
+                            'camera into')
+        if problems:
+            raise ConfigError('; '.join(problems))
+
+
+def load_camera_params_yaml(path: str | Path, node_name: str = NODE_NAME) -> CameraParams:
+    """CameraParams from a ROS 2 parameter file: the node's section, else the `/**` one;
+    use_sim_time is accepted and left to ROS."""
+    path = Path(path)
+    try:
+        document = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f'cannot read parameter file {path}: {exc}') from exc
+    section: Any = (document.get(node_name, document.get('/**'))
+                    if isinstance(document, dict) else None)
+    if not isinstance(section, dict) or 'ros__parameters' not in section:
+        raise ConfigError(f'parameter file {path} has no {node_name}: ros__parameters section')
+    try:
+        return from_dict(CameraParams, section['ros__parameters'], ignore=('use_sim_time',))
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f'parameter file {path}: {exc}') from exc
