@@ -23,6 +23,7 @@ setup(
     entry_points={
         'console_scripts': [
             'lane_detector = fhld_ros.ros.lane_detector:main',
+            'camera_lane_detector = fhld_ros.ros.camera_lane_detector:main',
             'fhld = fhld_ros.cli:main',
         ],
     },

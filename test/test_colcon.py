@@ -31,6 +31,7 @@ def test_colcon_build_installs_a_runnable_lane_detector(tmp_path, ros_env):
     assert (install / 'fhld_ros/share/fhld_ros/package.xml').is_file()
     assert (install / 'fhld_ros/share/fhld_ros/config/lane_detector.yaml').is_file()
     assert os.access(install / 'fhld_ros/lib/fhld_ros/lane_detector', os.X_OK)
+    assert os.access(install / 'fhld_ros/lib/fhld_ros/camera_lane_detector', os.X_OK)
     shipped = list(install.glob('fhld_ros/lib/python3*/site-packages/fhld_ros/checkpoints/*.pt'))
     assert shipped, 'the shipped weights are not installed'
 

@@ -1,0 +1,290 @@
+"""`camera_lane_detector` node (ros2 run fhld_ros camera_lane_detector): a thin shell around
+CameraPipeline (SALAD, the monocular camera detector).
+
+The image callback only decodes and checks the image against the newest camera_info, keeps it
+when it is due (rate_hz on image stamps) and wakes the detection callback (a guard condition,
+in its own callback group). Detection never queues up: a wake-up during a running detection is
+skipped, and a detection that ends with a newer image waiting starts on it at once, so the
+newest image wins and an image replaced before it was detected is counted as overtaken. A bad
+message is dropped, counted and warned about (throttled); the node goes on. Topics, frames and
+messages: docs/design.md §3, the same /lanes contract as lane_detector.
+"""
+from __future__ import annotations
+
+import gc
+import re
+import sys
+import threading
+import time
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from nav_msgs.msg import Path
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.clock import Clock, ClockType
+from rclpy.event_handler import QoSMessageLostInfo, SubscriptionEventCallbacks
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, Image
+from visualization_msgs.msg import MarkerArray
+
+from fhld_ros.dataclass_dict import field_docs, from_dict, to_plain
+from fhld_ros.errors import ConfigError
+from fhld_ros.lane_output import LANE_TOPICS, lane_messages
+from fhld_ros.ros import stop
+from fhld_ros.ros.camera_diagnostics import CameraStats
+from fhld_ros.ros.declare import rcl_reason
+from fhld_ros.ros.node import spin
+from fhld_ros.salad.camera_pipeline import CameraPipeline, ImageIntake, load_camera_detector
+from fhld_ros.salad.parameters import NODE_NAME, CameraParams
+from msg_adapters.family import rclpy_family
+
+WARN_THROTTLE_SEC = 5.0
+QOS_CHECK_SEC = 1.0
+GIL_SWITCH_SEC = 0.0005  # as lane_detector's main(): torch gives the GIL up in every op
+TOPIC_PARAMS = ('image_topic', 'camera_info_topic', 'lanes_topic')
+FAMILY = rclpy_family()
+# rclpy's refusal of a value of the wrong type (InvalidParameterTypeException's wording)
+_WRONG_TYPE = re.compile(
+    r"parameter '(?P<name>[^']+)' to '(?P<value>.*)' of type '(?P<given>\w+)'")
+_WANTED = {bool: 'true or false', int: 'an integer', str: 'a string',
+           float: 'a number with a decimal point (e.g. 10.0)',
+           tuple: 'a list of numbers with decimal points (e.g. [0.0, 1.5])'}
+
+
+def declare_camera_params(node: Node) -> CameraParams:
+    """Declare every CameraParams field, read-only and described by its doc (the node reads
+    them once: `ros2 param set` is refused with a reason); the values as CameraParams.
+    ConfigError naming the parameter for a wrong type, a refused value or a bad topic name."""
+    docs = field_docs(CameraParams)
+    defaults = CameraParams()
+    try:
+        declared = node.declare_parameters('', [
+            (name, default, ParameterDescriptor(description=docs[name], read_only=True))
+            for name, default in to_plain(defaults).items()])
+    except ParameterException as exc:
+        wrong = _WRONG_TYPE.search(str(exc))
+        if wrong is None:
+            raise ConfigError(str(exc)) from None
+        name, value, given = wrong.group('name', 'value', 'given')
+        wanted = _WANTED.get(type(getattr(defaults, name, None)), 'of its declared type')
+        raise ConfigError(f'{name} must be {wanted}, not {given.lower().replace("_", " ")} '
+                          f'{value}') from None
+    params = from_dict(CameraParams, {p.name: p.value for p in declared})
+    for name in TOPIC_PARAMS:
+        try:
+            node.resolve_topic_name(getattr(params, name))
+        except rclpy_implementation.RCLError as exc:
+            reason = rcl_reason(exc).removeprefix('failed to resolve name: ')
+            raise ConfigError(f'{name} {getattr(params, name)!r} is not a valid topic name: '
+                              f'{reason}') from None
+    return params
+
+
+class CameraLaneDetectorNode(Node):
+    """Images and camera_info in, /lanes, the ego lane Paths and /diagnostics out.
+
+    Keyword arguments go to rclpy's Node (context, parameter_overrides, namespace, ...).
+    """
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(NODE_NAME, **kwargs)
+        self.params = declare_camera_params(self)
+        self.pipeline = CameraPipeline(
+            self.params, load_camera_detector(self.params.checkpoint, self.params.model_threads))
+        self.get_logger().info(f'parameters: {self.params}')
+        self.lock = threading.Lock()  # the pipeline: input callbacks vs taking an image
+        self.detecting = threading.Lock()
+        self.said_distorted = False
+        self.stats = CameraStats()
+        self._create_interfaces()
+        self.get_logger().info(f'camera_lane_detector ready: SALAD on '
+                               f'{self.resolve_topic_name(self.params.image_topic)}')
+
+    def _create_interfaces(self) -> None:
+        p = self.params
+        # images and camera_info one at a time, in arrival order
+        self.inputs = MutuallyExclusiveCallbackGroup()
+        self.image_sub = None
+        self.image_reliability: ReliabilityPolicy | None = None
+        self._subscribe_images(ReliabilityPolicy.BEST_EFFORT
+                               if p.input_reliability == 'best_effort'
+                               else ReliabilityPolicy.RELIABLE)
+        # best effort matches reliable and best-effort drivers alike; only the newest counts
+        self.create_subscription(
+            CameraInfo, p.camera_info_topic, self.on_camera_info,
+            QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT),
+            callback_group=self.inputs)
+        out_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
+        types = {'visualization_msgs/msg/MarkerArray': MarkerArray, 'nav_msgs/msg/Path': Path}
+        self.lane_pubs = {suffix: self.create_publisher(types[name], p.lanes_topic + suffix,
+                                                        out_qos)
+                          for suffix, name in LANE_TOPICS.items()}
+        self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', out_qos)
+        # Reentrant: a wake-up that finds a detection running returns at once (never queues)
+        self.wake_detection = self.create_guard_condition(
+            self.on_detection_due, callback_group=ReentrantCallbackGroup())
+        wall = Clock(clock_type=ClockType.STEADY_TIME)  # diagnostics go on when a bag stops
+        self.create_timer(1.0, self.publish_diagnostics,
+                          callback_group=MutuallyExclusiveCallbackGroup(), clock=wall)
+        if p.input_reliability == 'auto':
+            self.create_timer(QOS_CHECK_SEC, self.match_publisher_qos,
+                              callback_group=self.inputs, clock=wall)
+
+    def _subscribe_images(self, reliability: ReliabilityPolicy) -> None:
+        if self.image_sub is not None:
+            self.destroy_subscription(self.image_sub)
+        # sensor-data QoS (keep last, volatile) with the chosen reliability
+        qos = QoSProfile(history=qos_profile_sensor_data.history, depth=2,
+                         durability=qos_profile_sensor_data.durability, reliability=reliability)
+        self.image_sub = self.create_subscription(
+            Image, self.params.image_topic, self.on_image, qos, callback_group=self.inputs,
+            event_callbacks=SubscriptionEventCallbacks(message_lost=self.on_lost))
+        self.image_reliability = reliability
+        self.get_logger().info(f'subscribed to {self.params.image_topic} with '
+                               f'{reliability.name} reliability')
+
+    def match_publisher_qos(self) -> None:
+        """input_reliability 'auto': reliable unless a best-effort publisher appears."""
+        infos = self.get_publishers_info_by_topic(
+            self.resolve_topic_name(self.params.image_topic))
+        if not infos:
+            return
+        best_effort = any(i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+                          for i in infos)
+        wanted = ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE
+        if wanted != self.image_reliability:
+            self._subscribe_images(wanted)
+
+    def _drop(self, what: str, exc: Exception) -> None:
+        """A message dropped (bad input) or one that failed unexpectedly: counted, warned
+        about (throttled); the node goes on."""
+        self.stats.error(what, exc)
+        self.get_logger().warning(f'dropped {what.replace("_", " ")}: {exc}',
+                                  throttle_duration_sec=WARN_THROTTLE_SEC)
+
+    def on_lost(self, info: QoSMessageLostInfo) -> None:
+        """DDS says images never reached this subscription."""
+        self.stats.counts['images_lost_in_dds'] += info.total_count_change
+        self.stats.event('images_lost', value=info.total_count_change)
+        self.get_logger().warning(
+            f'DDS lost {info.total_count} images on {self.params.image_topic} before they '
+            'reached the node', throttle_duration_sec=WARN_THROTTLE_SEC)
+
+    def on_camera_info(self, msg: CameraInfo) -> None:
+        try:
+            with self.lock:
+                problem = self.pipeline.receive_camera_info(msg)
+                camera = self.pipeline.camera
+        except Exception as exc:  # an unexpected failure never takes the node down either
+            problem, camera = exc, None
+        if problem is not None:
+            self._drop('bad_camera_info', problem)
+        elif camera is not None and camera.distorted and not self.said_distorted:
+            self.said_distorted = True
+            self.get_logger().warning(
+                f'{self.params.camera_info_topic} has lens distortion; SALAD takes images as '
+                'undistorted: subscribe to a rectified image (image_rect) for exact lanes')
+
+    def on_image(self, msg: Image) -> None:
+        arrived = time.monotonic()
+        self.stats.image_received(arrived)
+        try:
+            with self.lock:
+                intake = self.pipeline.receive_image(msg)
+        except Exception as exc:
+            intake = ImageIntake(dropped=exc)
+        if intake.dropped is not None:
+            self._drop('bad_images', intake.dropped)
+            return
+        if intake.replaced:
+            self.stats.event('images_overtaken', arrived)
+        if intake.due:
+            self.stats.image_due(intake.stamp_ns, arrived, intake.timings_ms['image_decode_ms'])
+            self.wake_detection.trigger()
+
+    def on_detection_due(self) -> None:
+        while self.detecting.acquire(blocking=False):  # else one is running: never queue
+            try:
+                while self.detect_once():
+                    pass
+            finally:
+                self.detecting.release()
+            # an image that came in after the last check found the lock still held
+            if not self.pipeline.detection_due:
+                return
+
+    def detect_once(self) -> bool:
+        """Detect on the waiting image, if any; True when a detection ran."""
+        try:
+            with self.lock:
+                image = self.pipeline.due_image()
+            if image is None:
+                return False
+            start = time.monotonic()
+            out = self.pipeline.detect_image(image)
+            detected = time.monotonic()
+            for suffix, cdr in lane_messages(out).items():
+                self.lane_pubs[suffix].publish(cdr)
+            done = time.monotonic()
+            self.stats.detection_done(out.stamp_ns, start, out.timings_ms, done,
+                                      (done - detected) * 1e3)
+            return True
+        except Exception as exc:
+            self.stats.error('detection_errors', exc)
+            self.get_logger().error(f'detection failed: {exc}',
+                                    throttle_duration_sec=WARN_THROTTLE_SEC)
+            return False
+
+    def publish_diagnostics(self) -> None:
+        with self.lock:
+            counters = dict(self.pipeline.counters)
+        status = self.stats.status(counters, getattr(self.image_reliability, 'name', ''),
+                                   self.get_fully_qualified_name())
+        self.diag_pub.publish(DiagnosticArray(
+            header=FAMILY.header(self.get_clock().now().nanoseconds, ''), status=[status]))
+
+
+def main(args: list[str] | None = None) -> int:
+    """Run the node until a signal; 0 when stopped, 2 (one line) for bad parameters or weights.
+
+    Signals as lane_detector's main() (fhld_ros/ros/node.py): a stop at any moment exits 0.
+    """
+    try:
+        rclpy.init(args=args)
+    except rclpy_implementation.RCLError as exc:  # arguments rcl cannot parse ('-p name:=')
+        reason = rcl_reason(exc).removeprefix('failed to initialize rcl: ')
+        print(f'{NODE_NAME}: error: bad ROS arguments: {reason}', file=sys.stderr)
+        return 2
+    try:
+        with stop.held():  # signals are recorded while it is built: see ros/stop.py
+            node = CameraLaneDetectorNode()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        rclpy.try_shutdown()
+        return 0
+    except ConfigError as exc:
+        if not rclpy.ok():
+            return 0  # stopped by a signal while the node was being built
+        print(f'{NODE_NAME}: error: {exc}', file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    except Exception:
+        if rclpy.ok():  # else a signal made whatever ran then fail: that is the stop
+            raise
+        return 0
+    if stop.received:
+        node.destroy_node()
+        rclpy.try_shutdown()
+        return 0
+    sys.setswitchinterval(GIL_SWITCH_SEC)
+    gc.freeze()  # as lane_detector: full collections of start-up objects stalled callbacks
+    try:
+        spin(node)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
