@@ -1,5 +1,8 @@
 """`fhld replay IN_BAG OUT_BAG`: the node's pipeline on bag time, as fast as the machine allows.
 
+`--detector salad` replays the camera images instead, through camera_lane_detector's pipeline
+(commands/replay_camera.py); what follows is the LiDAR replay.
+
 A thin driver of LanePipeline, as the node is: the pipeline decides which sweeps are detected
 (rate_hz on sweep stamps), drops bad messages and builds the messages written, so a replay
 writes what the node publishes when each message is handled before the next arrives, and the
@@ -18,6 +21,8 @@ from pathlib import Path
 from tqdm import tqdm
 
 from fhld_ros.bagio import BagWriter, check_output, read_messages, topic_counts
+from fhld_ros.commands import replay_camera
+from fhld_ros.commands.replay_camera import CAMERA_INFO_TOPIC, IMAGE_TOPIC
 from fhld_ros.detectors import make_detector
 from fhld_ros.errors import ConfigError
 from fhld_ros.lane_output import LANE_TOPICS, lane_messages
@@ -27,15 +32,22 @@ from msg_adapters.family import stamp_to_ns
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument('in_bag', type=Path, help='rosbag2 bag with PointCloud2 (+ Odometry)')
+    parser.add_argument('in_bag', type=Path, help='rosbag2 bag with PointCloud2 (+ Odometry), '
+                        'or with Image + CameraInfo for --detector salad')
     parser.add_argument('out_bag', type=Path, help='MCAP bag to write /lanes and ego Paths to')
     parser.add_argument('--points-topic', default='/points')
     parser.add_argument('--odom-topic', default='/odom',
                         help="odometry topic; '' or a topic absent from the bag: per sweep")
-    parser.add_argument('--params', type=Path, help='lane_detector parameter YAML')
-    parser.add_argument('--checkpoint', help='FHLD weights (default: the shipped checkpoint)')
-    parser.add_argument('--detector', choices=['fhld', 'classical'],
-                        help='detector back-end (default: the parameter, fhld)')
+    parser.add_argument('--image-topic', default=IMAGE_TOPIC, help='--detector salad: images')
+    parser.add_argument('--camera-info-topic', default=CAMERA_INFO_TOPIC,
+                        help='--detector salad: their camera_info')
+    parser.add_argument('--params', type=Path, help='lane_detector parameter YAML (with '
+                        '--detector salad: its camera_lane_detector section)')
+    parser.add_argument('--checkpoint', help='FHLD (SALAD with --detector salad) weights '
+                        '(default: the shipped checkpoint)')
+    parser.add_argument('--detector', choices=['fhld', 'classical', 'salad'],
+                        help="detector back-end (default: the parameter, fhld); 'salad': the "
+                        'camera detector on --image-topic')
     parser.add_argument('--overwrite', action='store_true',
                         help='replace an existing OUT_BAG (only a rosbag2 bag folder)')
     parser.add_argument('--quiet', action='store_true', help='no progress bar')
@@ -100,6 +112,8 @@ def _stamp_s(msg: object) -> str:
 
 def run(args: argparse.Namespace) -> int:
     check_output(args.out_bag, args.overwrite, {'IN_BAG': args.in_bag})
+    if args.detector == 'salad':
+        return replay_camera.run(args)
     params = load_params_yaml(args.params) if args.params else DetectorParams()
     overrides = {k: v for k, v in (('detector', args.detector),
                                    ('checkpoint', args.checkpoint)) if v}

@@ -1,0 +1,87 @@
+"""`fhld replay IN_BAG OUT_BAG --detector salad`: camera_lane_detector's pipeline over a bag's
+camera images (what `fhld simulate --camera` writes: /camera/image_raw + /camera/camera_info).
+
+A thin driver of CameraPipeline, as the node is: every message in bag order, and after each one
+the detection it made due, so a replay writes what the node publishes when each message is
+handled before the next arrives (a live node busy with one image may see a newer one replace
+the next: overtaken). OUT_BAG follows bagio's output rule, as the LiDAR replay's.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+
+from tqdm import tqdm
+
+from fhld_ros.bagio import BagWriter, check_output, read_messages, topic_counts
+from fhld_ros.errors import ConfigError
+from fhld_ros.lane_output import LANE_TOPICS, lane_messages
+from fhld_ros.salad.camera_pipeline import CameraPipeline, load_camera_detector
+from fhld_ros.salad.parameters import CameraParams, load_camera_params_yaml
+from msg_adapters.family import stamp_to_ns
+
+IMAGE_TOPIC, CAMERA_INFO_TOPIC = '/camera/image_raw', '/camera/camera_info'
+
+
+def replay_camera(in_bag: Path, out_bag: Path, params: CameraParams,
+                  image_topic: str = IMAGE_TOPIC, camera_info_topic: str = CAMERA_INFO_TOPIC,
+                  progress: bool = True, overwrite: bool = False) -> dict[str, int]:
+    """Run the camera pipeline over in_bag and write its outputs to out_bag; returns counts."""
+    inputs = {'IN_BAG': in_bag}
+    check_output(out_bag, overwrite, inputs)  # before the model loads: fail fast
+    counts = topic_counts(in_bag)
+    for topic in (image_topic, camera_info_topic):
+        if not counts.get(topic):
+            missing = 'no messages on' if topic in counts else 'no topic'
+            raise ConfigError(f'bag {in_bag} has {missing} {topic} (it has: '
+                              f'{", ".join(sorted(counts)) or "nothing"})')
+    pipeline = CameraPipeline(params, load_camera_detector(params.checkpoint,
+                                                           params.model_threads))
+    lanes_topic = '/' + params.lanes_topic.strip('/')
+    detections = 0
+    topics = [camera_info_topic, image_topic]
+    bar = tqdm(total=sum(counts[t] for t in topics), unit='msg', disable=not progress,
+               desc='replay', file=sys.stderr)
+    with BagWriter(out_bag, overwrite, inputs) as writer:
+        for topic, _, msg in read_messages(in_bag, topics):
+            bar.update()
+            if topic == camera_info_topic:
+                problem = pipeline.receive_camera_info(msg)
+            else:
+                problem = pipeline.receive_image(msg).dropped
+            if problem is not None:
+                kind = 'camera_info' if topic == camera_info_topic else 'image'
+                bar.write(f'dropped {kind} at {_stamp_s(msg)}: {problem}')
+            while (out := pipeline.detect()) is not None:
+                for suffix, cdr in lane_messages(out).items():
+                    writer.write(lanes_topic + suffix, LANE_TOPICS[suffix], out.stamp_ns, cdr)
+                detections += 1
+    bar.close()
+    c = pipeline.counters
+    return {'images': c['images'] + c['bad_images'], 'dropped': c['bad_images'],
+            'skipped': c['images_skipped'], 'bad_camera_info': c['bad_camera_info'],
+            'detections': detections}
+
+
+def _stamp_s(msg: object) -> str:
+    try:
+        return f'{stamp_to_ns(msg.header.stamp) * 1e-9:.3f} s'
+    except (AttributeError, TypeError, ValueError):
+        return 'an unreadable stamp'
+
+
+def run(args: argparse.Namespace) -> int:
+    """`fhld replay --detector salad` (replay.py's arguments)."""
+    params = load_camera_params_yaml(args.params) if args.params else CameraParams()
+    if args.checkpoint:
+        params = dataclasses.replace(params, checkpoint=args.checkpoint)
+    stats = replay_camera(args.in_bag, args.out_bag, params, args.image_topic,
+                          args.camera_info_topic, progress=not args.quiet,
+                          overwrite=args.overwrite)
+    bad_info = (f', {stats["bad_camera_info"]} bad camera_info messages'
+                if stats['bad_camera_info'] else '')
+    print(f'replayed {stats["images"]} images ({stats["dropped"]} dropped, {stats["skipped"]} '
+          f'skipped by rate_hz{bad_info}), {stats["detections"]} detections -> {args.out_bag}')
+    return 0

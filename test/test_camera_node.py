@@ -1,0 +1,309 @@
+"""camera_lane_detector and `fhld replay --detector salad`: one CameraPipeline behind both.
+
+The node runs in a real DDS graph (loopback) fed a simulated 960x540 camera drive (`fhld
+simulate --camera`) re-recorded with one malformed image and one uncalibrated camera_info, one
+message at a time, each once it has handled the last, so that it computes what a replay
+computes: the /lanes contract, byte for byte the replay's messages, the bad messages dropped and
+counted while the node goes on. The weights are an untrained SALAD whose lane logit is pushed
+up, so that it decodes a lane in every image (the shipped salad.pt is not needed). The pipeline
+itself (frames, ego lanes, outline, rate, refusals) is checked without DDS on a fake detector.
+"""
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rclpy
+import torch
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from ros_helpers import spin_in_background, wait_until
+from sensor_msgs.msg import CameraInfo, Image
+
+from fhld_ros.bagio import BagWriter, read_raw
+from fhld_ros.commands.replay_camera import CAMERA_INFO_TOPIC, IMAGE_TOPIC, replay_camera
+from fhld_ros.lane_output import LANE_TOPICS
+from fhld_ros.salad.camera_pipeline import OPTICAL_TO_FLU, CameraPipeline
+from fhld_ros.salad.checkpoint import save_salad
+from fhld_ros.salad.config import SaladConfig
+from fhld_ros.salad.model import SaladNet
+from fhld_ros.salad.parameters import CameraParams
+from msg_adapters.camera import camera_info_msg, image_to_msg
+from msg_adapters.family import rosbags_family
+from msg_adapters.lanes import DELETEALL, LINE_STRIP
+from msg_adapters.odometry import euler_to_matrix
+
+pytestmark = [pytest.mark.ros]
+
+IMAGES = 5
+MALFORMED_AFTER = 2  # a truncated image after this one
+UNCALIBRATED_AFTER = 3  # a camera_info with K all zero after this image
+K = np.array([[685.0, 0.0, 479.5], [0.0, 685.0, 269.5], [0.0, 0.0, 1.0]])
+FAMILY = rosbags_family()
+
+
+def _checkpoint(path: Path) -> Path:
+    cfg = SaladConfig()
+    rows = cfg.grid[1]
+    cfg = dataclasses.replace(cfg, row_shift=tuple(np.linspace(60.0, 3.0, rows)),
+                              row_scale=tuple(np.linspace(10.0, 0.5, rows)))
+    torch.manual_seed(0)
+    model = SaladNet(cfg)
+    with torch.no_grad():
+        model.seg_head.bias.fill_(5.0)  # every cell a lane cell: one lane straight ahead
+    save_salad(path, model, 'test_camera_node')
+    return path
+
+
+def _user_bag(sim: Path, out: Path) -> None:
+    """The simulated camera re-recorded with the bad messages of the module doc."""
+    store = FAMILY.typestore
+    with BagWriter(out) as writer:
+        images = 0
+        for topic, msgtype, stamp, raw in read_raw(sim, [CAMERA_INFO_TOPIC, IMAGE_TOPIC]):
+            writer.write(topic, msgtype, stamp, raw)
+            if topic != IMAGE_TOPIC:
+                continue
+            images += 1
+            if images == MALFORMED_AFTER:
+                image = store.deserialize_cdr(raw, msgtype)
+                image.data = image.data[:-7]
+                image.header.stamp = FAMILY.stamp(stamp + 50_000_000)
+                writer.write(topic, msgtype, stamp + 50_000_000, image)
+            if images == UNCALIBRATED_AFTER:
+                writer.write(CAMERA_INFO_TOPIC, 'sensor_msgs/msg/CameraInfo', stamp + 1,
+                             camera_info_msg(FAMILY, FAMILY.header(stamp + 1, 'camera'),
+                                             960, 540, np.zeros((3, 3))))
+
+
+@pytest.fixture(scope='module')
+def drive(tmp_path_factory) -> tuple[Path, Path]:
+    """(the user bag, the checkpoint)."""
+    root = tmp_path_factory.mktemp('camera')
+    done = subprocess.run([sys.executable, '-m', 'fhld_ros.cli', 'simulate', str(root / 'sim'),
+                           '--seed', '3', '--sweeps', str(IMAGES), '--camera', '--camera-size',
+                           '960x540', '--quiet'], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    _user_bag(root / 'sim', root / 'user')
+    return root / 'user', _checkpoint(root / 'salad.pt')
+
+
+class Probe:
+    """Publishes images and camera_info; keeps the node's lane topics as serialized messages
+    and its newest /diagnostics values."""
+
+    def __init__(self, context: rclpy.Context) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+        from nav_msgs.msg import Path as PathMsg
+        from visualization_msgs.msg import MarkerArray
+        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+        self.node = rclpy.create_node('camera_probe', context=context)
+        types = {'visualization_msgs/msg/MarkerArray': MarkerArray,
+                 'nav_msgs/msg/Path': PathMsg}
+        self.got: dict[str, list[bytes]] = {suffix: [] for suffix in LANE_TOPICS}
+        for suffix, name in LANE_TOPICS.items():
+            self.node.create_subscription(types[name], 'lanes' + suffix,
+                                          self.got[suffix].append, qos, raw=True)
+        self.diagnostics: dict[str, str] = {}
+        self.node.create_subscription(
+            DiagnosticArray, 'diagnostics', lambda m: self.diagnostics.update(
+                {kv.key: kv.value for kv in m.status[0].values}), qos)
+        self.image = self.node.create_publisher(Image, 'camera/image_raw', qos)
+        self.info = self.node.create_publisher(CameraInfo, 'camera/camera_info', qos)
+        self.executor, self.thread = spin_in_background(self.node)
+
+
+def _handled(node) -> tuple[int, int]:
+    """(camera_info messages, images) the node's pipeline has taken, bad ones included."""
+    with node.lock:
+        c = node.pipeline.counters
+        return c['camera_infos'] + c['bad_camera_info'], c['images'] + c['bad_images']
+
+
+def _settled(node, probe: Probe) -> bool:
+    with node.lock:
+        due, detections = node.pipeline.detection_due, node.pipeline.counters['detections']
+    return (not due and not node.detecting.locked()
+            and all(len(got) == detections for got in probe.got.values()))
+
+
+def _feed(node, probe: Probe, bag: Path) -> None:
+    for topic, _, _, raw in read_raw(bag, [CAMERA_INFO_TOPIC, IMAGE_TOPIC]):
+        infos, images = _handled(node)
+        publisher, expected = ((probe.info, (infos + 1, images)) if topic == CAMERA_INFO_TOPIC
+                               else (probe.image, (infos, images + 1)))
+        publisher.publish(raw)
+        assert wait_until(lambda want=expected: _handled(node) == want, 20), (topic, expected)
+        assert wait_until(lambda: _settled(node, probe), 30), 'the detections never settled'
+
+
+def _check_contract(raw: bytes, frame: str) -> int:
+    """The /lanes contract (docs/design.md §3); returns the number of lanes."""
+    msg = FAMILY.typestore.deserialize_cdr(raw, 'visualization_msgs/msg/MarkerArray')
+    first, *rest = msg.markers
+    assert first.action == DELETEALL and first.ns == 'lanes'
+    assert rest[-1].ns == 'bev_window' and len(rest[-1].points) == 5
+    assert all(m.ns == 'lanes' and m.type == LINE_STRIP for m in rest[:-1])
+    assert all(m.header.frame_id == frame for m in msg.markers)
+    return len(rest) - 1
+
+
+@pytest.mark.slow
+def test_node_publishes_the_contract_and_the_replays_messages(drive, tmp_path, rclpy_context,
+                                                              one_torch_thread):
+    from fhld_ros.ros.camera_node import CameraLaneDetectorNode
+    from fhld_ros.ros.node import spin
+    bag, checkpoint = drive
+    params = CameraParams(checkpoint=str(checkpoint))
+    stats = replay_camera(bag, tmp_path / 'replayed', params, progress=False)
+    assert (stats['images'], stats['dropped'], stats['bad_camera_info']) == (IMAGES + 1, 1, 1)
+    assert stats['detections'] == IMAGES
+    replayed = {suffix: [raw for *_, raw in read_raw(tmp_path / 'replayed', ['/lanes' + suffix])]
+                for suffix in LANE_TOPICS}
+    assert all(_check_contract(raw, 'camera') >= 1 for raw in replayed[''])
+
+    node = CameraLaneDetectorNode(context=rclpy_context, parameter_overrides=[
+        Parameter('checkpoint', value=str(checkpoint))])
+    spinner = threading.Thread(target=spin, args=(node,), daemon=True)
+    spinner.start()
+    probe = Probe(rclpy_context)
+    try:
+        assert wait_until(lambda: probe.image.get_subscription_count() >= 1
+                          and probe.info.get_subscription_count() >= 1
+                          and all(node.count_subscribers('lanes' + suffix) >= 1
+                                  for suffix in LANE_TOPICS), 30), 'discovery never completed'
+        _feed(node, probe, bag)
+        for suffix in LANE_TOPICS:
+            assert probe.got[suffix] == replayed[suffix], f'/lanes{suffix} differs'
+        counters = node.pipeline.counters
+        assert (counters['bad_images'], counters['bad_camera_info']) == (1, 1)
+        assert counters['images_overtaken'] == 0  # fed at its pace
+        assert wait_until(lambda: probe.diagnostics.get('detections') == str(IMAGES), 5)
+        values = probe.diagnostics
+        assert (values['bad_images'], values['bad_camera_info']) == ('1', '1')
+        assert values['last_error'].startswith('bad_camera_info: ')
+        assert float(values['latency_ms_p95']) >= float(values['latency_ms_p50']) > 0
+        assert {'stage_warp_ms_p50', 'stage_model_ms_p50', 'stage_decode_ms_p50'} <= set(values)
+    finally:
+        rclpy_context.try_shutdown()
+        spinner.join(timeout=20)
+        probe.thread.join(timeout=20)
+        node.destroy_node()
+        probe.node.destroy_node()
+
+
+def _node_error(*ros_args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, '-m', 'fhld_ros.ros.camera_lane_detector',
+                           '--ros-args', *ros_args], capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.slow
+def test_a_missing_checkpoint_or_a_bad_parameter_is_one_line_and_exit_2(tmp_path):
+    missing = _node_error('-p', f'checkpoint:={tmp_path / "none.pt"}')
+    assert missing.returncode == 2, missing.stderr
+    assert missing.stderr.strip() == (f'camera_lane_detector: error: SALAD checkpoint '
+                                      f'{tmp_path / "none.pt"} does not exist')
+    bad = _node_error('-p', 'rate_hz:=fast')
+    assert bad.returncode == 2, bad.stderr
+    assert bad.stderr.strip() == ('camera_lane_detector: error: rate_hz must be a number with '
+                                  'a decimal point (e.g. 10.0), not string fast')
+
+
+# -- the pipeline without DDS --------------------------------------------------------------
+
+class RoadDetector:
+    """Four straight lanes 1.5 m below a level camera, 4-50 m ahead; the last scores 0.3."""
+
+    cfg = SaladConfig()
+    timings_ms = {'warp_ms': 1.0}
+
+    def __call__(self, image: np.ndarray, k: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+        z = np.linspace(4.0, 50.0, 47)
+        return ([np.column_stack([np.full_like(z, x), np.full_like(z, 1.5), z])
+                 for x in (-5.25, -1.75, 1.75, 5.25)], np.array([0.9, 0.8, 0.7, 0.3]))
+
+
+def _image(stamp_ns: int, width: int = 960, height: int = 540, frame: str = 'camera'):
+    return image_to_msg(FAMILY, FAMILY.header(stamp_ns, frame),
+                        np.zeros((height, width, 3), np.uint8))
+
+
+def _info(k: np.ndarray = K, width: int = 960, height: int = 540):
+    return camera_info_msg(FAMILY, FAMILY.header(0, 'camera'), width, height, k)
+
+
+def test_lanes_come_out_in_the_output_frame_with_ego_lanes_and_the_seen_ground():
+    pose = (1.0, 0.2, 1.5, -np.pi / 2, 0.0, -np.pi / 2)  # level, 1.5 m over base_link
+    outs = []
+    for params in (CameraParams(), CameraParams(output_frame='base_link', camera_to_output=pose)):
+        pipeline = CameraPipeline(params, RoadDetector())
+        assert pipeline.receive_camera_info(_info()) is None
+        assert pipeline.receive_image(_image(0)).due
+        outs.append(pipeline.detect())
+    camera, base = outs
+    assert (camera.frame_id, base.frame_id) == ('camera', 'base_link')
+    assert len(camera.lanes) == 3 and np.allclose(camera.confidences, [0.9, 0.8, 0.7])
+    T = euler_to_matrix(*pose)
+    for a, b in zip(camera.lanes + [camera.outline], base.lanes + [base.outline]):
+        np.testing.assert_allclose(b, a @ T[:3, :3].T + T[:3, 3], atol=1e-9)
+    # optical x -1.75 is left of the camera, +1.75 right
+    assert camera.ego_left[0, 0] == -1.75 and camera.ego_right[0, 0] == 1.75
+    np.testing.assert_allclose(base.ego_left[0], [5.0, 1.95, 0.0], atol=1e-9)
+    # the outline: on the road the lanes span (1.5 m below), from where the model's view meets
+    # it (the virtual camera's lower edge, 22.5 deg down) to the decoder's 60 m
+    flu = camera.outline @ OPTICAL_TO_FLU.T
+    np.testing.assert_allclose(flu[:, 2], -1.5, atol=1e-9)
+    assert flu[0, 0] == pytest.approx(1.5 / np.tan(np.arctan(165.5 / 400)), rel=0.05)
+    assert flu[1, 0] == pytest.approx(60.0) and flu[0, 1] < 0 < flu[3, 1]
+    np.testing.assert_array_equal(flu[0], flu[4])
+
+
+def test_images_are_detected_at_rate_hz_on_their_stamps():
+    pipeline = CameraPipeline(CameraParams(rate_hz=10.0), RoadDetector())
+    pipeline.receive_camera_info(_info())
+    detected = []
+    for k in range(9):  # 30 Hz
+        pipeline.receive_image(_image(k * 33_333_333))
+        out = pipeline.detect()
+        if out is not None:
+            detected.append(k)
+    assert detected == [0, 3, 6]
+    assert pipeline.counters['images_skipped'] == 6
+    # two due images before a detection: the newer wins, the older is overtaken (a drop)
+    assert pipeline.receive_image(_image(400_000_000)).due
+    intake = pipeline.receive_image(_image(500_000_000))
+    assert intake.due and intake.replaced
+    assert pipeline.detect().stamp_ns == 500_000_000
+    assert pipeline.counters['images_overtaken'] == 1
+
+
+def test_bad_input_is_refused_naming_the_problem_and_counted():
+    pipeline = CameraPipeline(CameraParams(), RoadDetector())
+    assert 'no camera_info received yet' in str(pipeline.receive_image(_image(0)).dropped)
+    assert pipeline.receive_camera_info(_info()) is None
+    wrong_size = pipeline.receive_image(_image(0, 640, 360)).dropped
+    assert str(wrong_size) == 'image is 640x360, its camera_info says 960x540'
+    encoded = _image(0)
+    encoded.encoding = '16UC1'
+    assert "encoding '16UC1' is not supported" in str(pipeline.receive_image(encoded).dropped)
+    truncated = _image(0)
+    truncated.data = truncated.data[:-3]
+    assert 'do not hold it' in str(pipeline.receive_image(truncated).dropped)
+    assert pipeline.receive_image(_image(0, frame='')).due  # in the camera_info's frame
+    assert pipeline.detect().frame_id == 'camera'
+    no_frame = camera_info_msg(FAMILY, FAMILY.header(0, ''), 960, 540, K)
+    assert pipeline.receive_camera_info(no_frame) is None
+    assert 'empty frame_id' in str(pipeline.receive_image(_image(1, frame='')).dropped)
+    assert 'K is all zero' in str(pipeline.receive_camera_info(_info(np.zeros((3, 3)))))
+    assert 'newest camera_info is bad: camera_info K is all zero' in str(
+        pipeline.receive_image(_image(0)).dropped)
+    skewed = K.copy()
+    skewed[0, 1] = 5.0
+    assert 'without skew' in str(pipeline.receive_camera_info(_info(skewed)))
+    assert pipeline.counters['bad_images'] == 6 and pipeline.counters['bad_camera_info'] == 2
+    assert pipeline.counters['images'] == 1 and pipeline.detect() is None
