@@ -307,3 +307,17 @@ def test_bad_input_is_refused_naming_the_problem_and_counted():
     assert 'without skew' in str(pipeline.receive_camera_info(_info(skewed)))
     assert pipeline.counters['bad_images'] == 6 and pipeline.counters['bad_camera_info'] == 2
     assert pipeline.counters['images'] == 1 and pipeline.detect() is None
+
+
+@pytest.mark.slow
+def test_bench_camera_reports_each_stage(monkeypatch):
+    from fhld_ros.commands import bench_camera
+    monkeypatch.setattr(bench_camera, 'REPEATS', 3)
+    threads = torch.get_num_threads()
+    result = bench_camera.bench_camera()
+    assert torch.get_num_threads() == threads
+    for key in ('camera_warp_ms', 'camera_model_ms', 'camera_decode_ms', 'camera_e2e_ms_p50',
+                'camera_e2e_ms_p95'):
+        assert result[key] > 0, key
+    assert result['camera_decode_lanes'] >= 2 and result['camera_image'] == '960x540'
+    assert result['camera_weights'] in ('shipped', 'untrained (salad.pt absent)')

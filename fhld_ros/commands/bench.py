@@ -1,7 +1,8 @@
 """`fhld bench`: stage timings as medians on the machine it runs on.
 
 Each section is a function ``() -> dict[str, float]`` in bench_stages.py (bench_e2e.py for the
-node end to end), registered in SECTIONS as 'module:function' and imported only when it runs.
+node end to end, bench_camera.py for SALAD, the camera detector, and its node), registered in
+SECTIONS as 'module:function' and imported only when it runs.
 ``fhld bench --json`` merges all sections into one flat JSON object; ``fhld bench adapters``
 runs one. Only e2e takes an argument: ``--dds`` picks the DDS transports it measures the node
 over (default both, its keys named e2e_project_* and e2e_default_*).
@@ -25,6 +26,8 @@ SECTIONS: dict[str, str] = {
     'model': f'{STAGES}:bench_model',
     'simulator': f'{STAGES}:bench_simulator',
     'e2e': 'fhld_ros.commands.bench_e2e:bench_e2e',
+    'camera': 'fhld_ros.commands.bench_camera:bench_camera',
+    'camera_live': 'fhld_ros.commands.bench_camera:bench_camera_live',
 }
 # --dds -> the transports of fhld_ros.ros.env.PROFILES that the e2e section runs, in order
 DDS_CHOICES: dict[str, tuple[str, ...]] = {

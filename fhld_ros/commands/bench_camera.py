@@ -1,0 +1,241 @@
+"""`fhld bench camera` and `fhld bench camera_live`: SALAD, the camera detector, on 960x540
+images of a simulated drive (salad/sim_source.py, the fixed camera of seed BENCH_SEED).
+
+camera: medians (ms) over REPEATS runs of each stage as camera_lane_detector runs it, on the
+node's default torch threads (model_threads 0): camera_warp_ms (resampling to the virtual
+camera), camera_model_ms (the network), camera_decode_ms (maps -> 3D lanes, on the maps of the
+image's own ground-truth lanes, so it costs what a real detection of them costs whatever the
+weights), and camera_e2e_ms_p50 / _p95: image message in -> the three /lanes messages out
+through CameraPipeline (decode, checks, SALAD, frames, ids, outline, serialisation).
+
+camera_live: the node as its own process over DDS (loopback, the project's profile) with its
+default parameters, fed one camera_info, then images and camera_info at 10 Hz on the wall clock
+for FHLD_BENCH_CAMERA_SECONDS (default 20): latency = /lanes arrival - image publish, an image
+whose stamp never comes back on /lanes is dropped, and the node's own counters (overtaken, lost
+by DDS) and stage medians from its /diagnostics.
+
+Both use the shipped fhld_ros/checkpoints/salad.pt; where it is absent an untrained model of
+the shipped config (SaladConfig's defaults, row statistics of the bench image) stands in, and
+camera_weights says so: the timings of warp and network do not depend on the weights, but such
+a model finds no lanes, so its camera_e2e_ms decodes none (camera_decode_ms has the cost).
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from fhld_ros.commands.bench_stages import time_median
+from fhld_ros.lane_output import lane_messages
+from fhld_ros.salad.camera_pipeline import CameraPipeline, load_camera_detector
+from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT, save_salad
+from fhld_ros.salad.config import SaladConfig
+from fhld_ros.salad.decode import decode
+from fhld_ros.salad.model import SaladNet
+from fhld_ros.salad.parameters import CameraParams
+from fhld_ros.salad.sample import CameraLaneSample
+from fhld_ros.salad.sim_source import simulated_samples
+from fhld_ros.salad.targets import lane_targets, row_statistics
+from msg_adapters.camera import camera_info_msg, image_to_msg
+from msg_adapters.family import rclpy_family, rosbags_family
+
+BENCH_SEED = 4_000_123  # a held-out SALAD seed (sim_source.salad_seeds('test') starts at 4e6)
+SIZE = (960, 540)
+REPEATS = 30
+SECONDS = float(os.environ.get('FHLD_BENCH_CAMERA_SECONDS', '20'))
+RATE_HZ = 10.0
+START_NS = 1_700_000_000_000_000_000
+NODE_START_TIMEOUT_SEC = 90.0
+# the node's counters (/diagnostics) reported as camera_live_node_<name>
+NODE_COUNTERS = ('images_overtaken', 'images_skipped', 'bad_images', 'images_lost_in_dds')
+
+
+def _sample() -> CameraLaneSample:
+    return next(simulated_samples(BENCH_SEED, 1, SIZE, randomise=False))
+
+
+def _weights(sample: CameraLaneSample, folder: Path) -> tuple[Path, str]:
+    """(checkpoint, what it is): the shipped one, else an untrained model of its config."""
+    if DEFAULT_SALAD_CHECKPOINT.is_file():
+        return DEFAULT_SALAD_CHECKPOINT, 'shipped'
+    cfg = SaladConfig()
+    targets = lane_targets(sample.lanes, cfg.camera)
+    shift, scale = row_statistics(targets.depth[None], targets.depth_mask[None])
+    cfg = dataclasses.replace(cfg, row_shift=tuple(map(float, shift)),
+                              row_scale=tuple(map(float, scale)))
+    torch.manual_seed(0)
+    path = folder / 'salad_untrained.pt'
+    save_salad(path, SaladNet(cfg), 'fhld bench camera: untrained stand-in')
+    return path, f'untrained ({DEFAULT_SALAD_CHECKPOINT.name} absent)'
+
+
+def _decode_ms(sample: CameraLaneSample, cfg: SaladConfig) -> float:
+    """decode() on the maps of the image's own lanes (as a model that found them gives)."""
+    targets = lane_targets(sample.lanes, cfg.camera)
+    shift, scale = np.asarray(cfg.row_shift)[:, None], np.asarray(cfg.row_scale)[:, None]
+    spatial = np.concatenate([targets.offsets, ((targets.depth - shift) / scale)[None]])
+    prob = targets.seg * 0.9
+    return time_median(lambda: decode(prob, spatial, cfg), repeats=REPEATS, warmup=2)
+
+
+def bench_camera() -> dict[str, float | str]:
+    """`fhld bench camera`: see the module doc."""
+    sample = _sample()
+    threads = torch.get_num_threads()
+    try:
+        return _bench_camera(sample)
+    finally:
+        torch.set_num_threads(threads)  # the detector set the node's: later sections keep theirs
+
+
+def _bench_camera(sample: CameraLaneSample) -> dict[str, float | str]:
+    with tempfile.TemporaryDirectory() as folder:
+        checkpoint, weights = _weights(sample, Path(folder))
+        detector = load_camera_detector(str(checkpoint))
+    cfg = detector.cfg
+    image, k = sample.image, sample.intrinsics
+    warp_ms = time_median(lambda: cfg.camera.warp(image, k), repeats=REPEATS)
+    x = torch.from_numpy(cfg.camera.warp(image, k)).permute(2, 0, 1)[None]
+
+    def forward() -> None:
+        with torch.inference_mode():
+            detector.model(x)
+    model_ms = time_median(forward, repeats=REPEATS, warmup=3)
+    family = rosbags_family()
+    pipeline = CameraPipeline(CameraParams(), detector)
+    pipeline.receive_camera_info(camera_info_msg(family, family.header(0, 'camera'), *SIZE, k))
+    msg = image_to_msg(family, family.header(0, 'camera'), image)
+    e2e, lanes = [], []
+    for n in range(REPEATS + 3):
+        msg.header.stamp = family.stamp(START_NS + n * 100_000_000)
+        start = time.perf_counter()
+        pipeline.receive_image(msg)
+        out = pipeline.detect()
+        lane_messages(out)
+        e2e.append((time.perf_counter() - start) * 1e3)
+        lanes.append(len(out.lanes))
+    p50, p95 = np.percentile(e2e[3:], [50, 95])
+    return {'camera_weights': weights, 'camera_image': f'{SIZE[0]}x{SIZE[1]}',
+            'camera_torch_threads': float(torch.get_num_threads()),
+            'camera_warp_ms': warp_ms, 'camera_model_ms': model_ms,
+            'camera_decode_ms': _decode_ms(sample, cfg),
+            'camera_decode_lanes': float(len(sample.lanes)),
+            'camera_e2e_ms_p50': float(p50), 'camera_e2e_ms_p95': float(p95),
+            'camera_e2e_lanes': float(statistics.median(lanes))}
+
+
+class _LiveClient:
+    """Publishes images + camera_info, times /lanes arrivals, keeps the node's /diagnostics."""
+
+    def __init__(self, context, sample: CameraLaneSample) -> None:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+        from msg_adapters.lanes import marker_array_stamp_ns
+        self.family = family = rclpy_family()
+        self.node = rclpy.create_node('fhld_bench_camera', context=context)
+        self.arrivals: list[tuple[int, float]] = []
+        self.diag: dict[str, str] = {}
+        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self.node.create_subscription(
+            family.cls('visualization_msgs/msg/MarkerArray'), 'lanes',
+            lambda raw: self.arrivals.append((marker_array_stamp_ns(raw), time.monotonic())),
+            reliable, raw=True)
+        self.node.create_subscription(
+            family.cls('diagnostic_msgs/msg/DiagnosticArray'), 'diagnostics',
+            lambda m: self.diag.update({kv.key: kv.value for st in m.status
+                                        for kv in st.values}), reliable)
+        self.image = self.node.create_publisher(family.cls('sensor_msgs/msg/Image'),
+                                                'camera/image_raw', reliable)
+        self.info = self.node.create_publisher(family.cls('sensor_msgs/msg/CameraInfo'),
+                                               'camera/camera_info', reliable)
+        self.image_msg = image_to_msg(family, family.header(0, 'camera'), sample.image)
+        self.info_msg = camera_info_msg(family, family.header(0, 'camera'), *SIZE,
+                                        sample.intrinsics)
+        self.executor = SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.node)
+        self.spinner = threading.Thread(target=self.executor.spin, daemon=True)
+        self.spinner.start()
+
+    def wait_for(self, node: subprocess.Popen) -> None:
+        deadline = time.monotonic() + NODE_START_TIMEOUT_SEC
+        while self.image.get_subscription_count() == 0 or self.info.get_subscription_count() == 0:
+            if time.monotonic() > deadline or node.poll() is not None:
+                raise RuntimeError('the camera_lane_detector node did not come up')
+            time.sleep(0.1)
+        time.sleep(1.0)
+
+    def publish(self, count: int) -> dict[int, float]:
+        """`count` images at RATE_HZ on the wall clock; stamp -> publish time of each."""
+        published: dict[int, float] = {}
+        # a camera_info ahead of the stream: across topics DDS keeps no order, and an image
+        # before the first camera_info is dropped (measured here: the first image, once)
+        self.info_msg.header.stamp = self.family.stamp(START_NS - int(1e9 / RATE_HZ))
+        self.info.publish(self.info_msg)
+        time.sleep(0.5)
+        t0 = time.monotonic()
+        for k in range(count):
+            stamp = START_NS + k * int(1e9 / RATE_HZ)
+            for msg in (self.info_msg, self.image_msg):
+                msg.header.stamp = self.family.stamp(stamp)
+            time.sleep(max(0.0, t0 + k / RATE_HZ - time.monotonic()))
+            self.info.publish(self.info_msg)
+            published[stamp] = time.monotonic()
+            self.image.publish(self.image_msg)
+        return published
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.spinner.join(timeout=10)
+        self.node.destroy_node()
+
+
+def bench_camera_live(seconds: float = SECONDS) -> dict[str, float | str]:
+    """`fhld bench camera_live`: see the module doc."""
+    import rclpy
+
+    from fhld_ros.ros.env import loopback_dds_env
+    os.environ.update(loopback_dds_env())  # before rclpy.init and the node read it
+    sample = _sample()
+    with tempfile.TemporaryDirectory() as folder:
+        checkpoint, weights = _weights(sample, Path(folder))
+        node = subprocess.Popen([sys.executable, '-m', 'fhld_ros.ros.camera_lane_detector',
+                                 '--ros-args', '-p', f'checkpoint:={checkpoint}'],
+                                env=dict(os.environ), stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL)
+        context = rclpy.Context()
+        rclpy.init(context=context)
+        client = _LiveClient(context, sample)
+        try:
+            client.wait_for(node)
+            published = client.publish(int(seconds * RATE_HZ))
+            time.sleep(2.0)  # the last detections and a /diagnostics
+        finally:
+            node.terminate()
+            node.wait(timeout=30)
+            client.close()
+            context.try_shutdown()
+    latencies = np.array([(t - published[s]) * 1e3 for s, t in client.arrivals
+                          if s in published])
+    if latencies.size < 3:
+        raise RuntimeError(f'only {latencies.size} /lanes messages arrived')
+    return {'camera_live_weights': weights, 'camera_live_seconds': float(seconds),
+            'camera_live_images_published': float(len(published)),
+            'camera_live_images_dropped': float(len(published) - len(
+                {s for s, _ in client.arrivals} & set(published))),
+            'camera_live_latency_ms_p50': float(np.percentile(latencies, 50)),
+            'camera_live_latency_ms_p95': float(np.percentile(latencies, 95)),
+            **{f'camera_live_node_{k}': float(v) for k, v in client.diag.items()
+               if k.startswith(('stage_', 'latency_ms_'))},
+            **{f'camera_live_node_{k}': float(client.diag.get(k, 0.0))
+               for k in NODE_COUNTERS}}
