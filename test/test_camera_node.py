@@ -321,3 +321,40 @@ def test_bench_camera_reports_each_stage(monkeypatch):
         assert result[key] > 0, key
     assert result['camera_decode_lanes'] >= 2 and result['camera_image'] == '960x540'
     assert result['camera_weights'] in ('shipped', 'untrained (salad.pt absent)')
+
+
+def test_replay_names_a_missing_camera_topic(drive, tmp_path):
+    from fhld_ros.errors import ConfigError
+    bag, checkpoint = drive
+    with pytest.raises(ConfigError, match=f'^bag {bag} has no topic /front/image '):
+        replay_camera(bag, tmp_path / 'out', CameraParams(checkpoint=str(checkpoint)),
+                      image_topic='/front/image', progress=False)
+    assert not (tmp_path / 'out').exists()
+
+
+def test_diagnostics_level_follows_the_last_window():
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    from fhld_ros.ros.camera_diagnostics import CameraStats
+    stats = CameraStats(now=0.0)
+    level, message, _ = stats.assess(1.0)
+    assert (level, message) == (DiagnosticStatus.WARN, 'no images received yet')
+    for k in range(10):  # 10 Hz, each detected in 40 ms
+        now = 1.0 + 0.1 * k
+        stats.image_received(now)
+        stats.image_due(k, now, 0.1)
+        stats.detection_done(k, now, {'model_ms': 30.0}, now + 0.04, 0.2)
+    assert stats.assess(2.0)[:2] == (DiagnosticStatus.OK, 'running')
+    stats.image_received(2.0)
+    stats.error('bad_images', ValueError('image is 640x360, its camera_info says 960x540'), 2.0)
+    level, message, window = stats.assess(2.05)
+    assert level == DiagnosticStatus.WARN
+    assert message == 'dropped 1 of 11 images in 2 s (1 bad; 9% > 0%)', message
+    assert window['window_images_dropped'] == '1'
+    assert stats.assess(8.0)[:2] == (DiagnosticStatus.WARN,
+                                     'input stale: no images for 6.0 s (> 2 s)')
+    assert stats.assess(13.0)[0] == DiagnosticStatus.ERROR
+    status = stats.status({'images': 10}, 'RELIABLE', 'node', 2.05)
+    values = {kv.key: kv.value for kv in status.values}
+    assert values['latency_ms_p50'] == '40.0' and values['stage_model_ms_p50'] == '30.0'
+    assert values['last_error'].startswith('bad_images: image is 640x360')
