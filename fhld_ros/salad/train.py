@@ -48,6 +48,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--save-every', type=int, default=250)
     parser.add_argument('--resume', action='store_true', help='continue OUT/state.pt')
     parser.add_argument('--device', default='cpu')
+    parser.add_argument('--threads', type=int, default=0,
+                        help='torch threads (0: torch\'s default); 1 keeps a shared machine '
+                        'from thrashing')
 
 
 def build_cache(cache: Path, drives: int, frames: int, cfg: SaladConfig, workers: int) -> None:
@@ -99,6 +102,8 @@ def _start(args: argparse.Namespace, samples: ShardSamples) -> tuple[SaladNet, d
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.threads:
+        torch.set_num_threads(args.threads)
     cache = args.cache or args.out / 'cache'
     args.out.mkdir(parents=True, exist_ok=True)
     build_cache(cache, args.drives, args.frames, SaladConfig(), args.workers)
