@@ -112,7 +112,7 @@ def load_camera_detector(checkpoint: str = '', threads: int = 0) -> SaladDetecto
         if checkpoint:
             raise
         raise ConfigError(f'{exc} (the shipped weights; name others with the checkpoint '
-                          'parameter)') from exc
+                          'parameter, or fhld replay --checkpoint)') from exc
 
 
 def check_camera_info(msg: Any) -> CameraIntrinsics:
