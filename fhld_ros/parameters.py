@@ -8,13 +8,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import yaml
 
 from fhld_ros.dataclass_dict import documented, field_problems, from_dict
 from fhld_ros.errors import ConfigError
 from fhld_ros.model.config import REFINE_STEPS, SIZE_PX, FhldConfig
+
+P = TypeVar('P')
 
 # Each field's range or choices sit beside its doc (dataclass_dict.documented). Upper bounds keep
 # memory and time finite (size_px = 100000 asked numpy for 75 GiB); they sit far above any
@@ -109,8 +111,10 @@ class DetectorParams:
             raise ConfigError('; '.join(problems))
 
 
-def load_params_yaml(path: str | Path, node_name: str = 'lane_detector') -> DetectorParams:
-    """DetectorParams from a ROS 2 parameter file (`<node>: ros__parameters: {...}`).
+def load_params_yaml(path: str | Path, node_name: str = 'lane_detector',
+                     cls: type[P] = DetectorParams) -> P:
+    """A `cls` (DetectorParams, CameraParams) from a ROS 2 parameter file
+    (`<node>: ros__parameters: {...}`).
 
     The node's section, else the `/**` wildcard one; use_sim_time (a parameter of every node)
     is accepted and left to ROS.
@@ -125,17 +129,6 @@ def load_params_yaml(path: str | Path, node_name: str = 'lane_detector') -> Dete
     if not isinstance(section, dict) or 'ros__parameters' not in section:
         raise ConfigError(f'parameter file {path} has no {node_name}: ros__parameters section')
     try:
-        return from_dict(DetectorParams, section['ros__parameters'], ignore=('use_sim_time',))
+        return from_dict(cls, section['ros__parameters'], ignore=('use_sim_time',))
     except (TypeError, ValueError) as exc:  # TypeError: a value of the wrong kind
         raise ConfigError(f'parameter file {path}: {exc}') from exc
-
-
-def type_problem(name: str, value: str, given: str) -> str:
-    """One line for a parameter given a value of the wrong type (`given`: ROS's type name,
-    e.g. INTEGER for `rate_hz:=10`, which ROS does not turn into the double it declares)."""
-    wanted = {bool: 'true or false', int: 'an integer', str: 'a string',
-              float: 'a number with a decimal point (e.g. 10.0)',
-              tuple: 'a list of numbers with decimal points (e.g. [0.0, 1.5])'}
-    default = getattr(DetectorParams(), name, None)
-    return (f'{name} must be {wanted.get(type(default), "of its declared type")}, not '
-            f'{given.lower().replace("_", " ")} {value}')

@@ -8,12 +8,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
-import yaml
-
-from fhld_ros.dataclass_dict import documented, field_problems, from_dict
+from fhld_ros.dataclass_dict import documented, field_problems
 from fhld_ros.errors import ConfigError
+from fhld_ros.parameters import load_params_yaml
 
 NODE_NAME = 'camera_lane_detector'
 IDENTITY = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
@@ -71,17 +69,5 @@ class CameraParams:
 
 def load_camera_params_yaml(path: str | Path, node_name: str = NODE_NAME) -> CameraParams:
     """CameraParams from a ROS 2 parameter file: the node's section, else the `/**` one;
-    use_sim_time is accepted and left to ROS."""
-    path = Path(path)
-    try:
-        document = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise ConfigError(f'cannot read parameter file {path}: {exc}') from exc
-    section: Any = (document.get(node_name, document.get('/**'))
-                    if isinstance(document, dict) else None)
-    if not isinstance(section, dict) or 'ros__parameters' not in section:
-        raise ConfigError(f'parameter file {path} has no {node_name}: ros__parameters section')
-    try:
-        return from_dict(CameraParams, section['ros__parameters'], ignore=('use_sim_time',))
-    except (TypeError, ValueError) as exc:
-        raise ConfigError(f'parameter file {path}: {exc}') from exc
+    use_sim_time is accepted and left to ROS (fhld_ros.parameters.load_params_yaml)."""
+    return load_params_yaml(path, node_name, CameraParams)
