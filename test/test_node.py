@@ -24,7 +24,8 @@ from fhld_ros.errors import ConfigError
 from fhld_ros.parameters import DetectorParams
 from fhld_ros.ros import diagnostics
 from fhld_ros.ros.diagnostics import STAGES
-from fhld_ros.ros.node import LaneDetectorNode, spin
+from fhld_ros.ros.executor import spin
+from fhld_ros.ros.node import LaneDetectorNode
 from fhld_ros.sim.simulator import Simulator
 from msg_adapters.family import rclpy_family
 from msg_adapters.lanes import DELETEALL, marker_array_to_lanes

@@ -11,78 +11,30 @@ messages: docs/design.md §3, the same /lanes contract as lane_detector.
 """
 from __future__ import annotations
 
-import gc
-import re
-import sys
 import threading
 import time
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Path
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import QoSMessageLostInfo, SubscriptionEventCallbacks
-from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
-from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
 from visualization_msgs.msg import MarkerArray
 
-from fhld_ros.dataclass_dict import field_docs, from_dict, to_plain
-from fhld_ros.errors import ConfigError
 from fhld_ros.lane_output import LANE_TOPICS, lane_messages
-from fhld_ros.ros import stop
 from fhld_ros.ros.camera_diagnostics import CameraStats
-from fhld_ros.ros.declare import rcl_reason
-from fhld_ros.ros.node import spin
+from fhld_ros.ros.declare import declare_params
+from fhld_ros.ros.executor import run_node
 from fhld_ros.salad.camera_pipeline import CameraPipeline, ImageIntake, load_camera_detector
 from fhld_ros.salad.parameters import NODE_NAME, CameraParams
 from msg_adapters.family import rclpy_family
 
 WARN_THROTTLE_SEC = 5.0
 QOS_CHECK_SEC = 1.0
-GIL_SWITCH_SEC = 0.0005  # as lane_detector's main(): torch gives the GIL up in every op
-TOPIC_PARAMS = ('image_topic', 'camera_info_topic', 'lanes_topic')
 FAMILY = rclpy_family()
-# rclpy's refusal of a value of the wrong type (InvalidParameterTypeException's wording)
-_WRONG_TYPE = re.compile(
-    r"parameter '(?P<name>[^']+)' to '(?P<value>.*)' of type '(?P<given>\w+)'")
-_WANTED = {bool: 'true or false', int: 'an integer', str: 'a string',
-           float: 'a number with a decimal point (e.g. 10.0)',
-           tuple: 'a list of numbers with decimal points (e.g. [0.0, 1.5])'}
-
-
-def declare_camera_params(node: Node) -> CameraParams:
-    """Declare every CameraParams field, read-only and described by its doc (the node reads
-    them once: `ros2 param set` is refused with a reason); the values as CameraParams.
-    ConfigError naming the parameter for a wrong type, a refused value or a bad topic name."""
-    docs = field_docs(CameraParams)
-    defaults = CameraParams()
-    try:
-        declared = node.declare_parameters('', [
-            (name, default, ParameterDescriptor(description=docs[name], read_only=True))
-            for name, default in to_plain(defaults).items()])
-    except ParameterException as exc:
-        wrong = _WRONG_TYPE.search(str(exc))
-        if wrong is None:
-            raise ConfigError(str(exc)) from None
-        name, value, given = wrong.group('name', 'value', 'given')
-        wanted = _WANTED.get(type(getattr(defaults, name, None)), 'of its declared type')
-        raise ConfigError(f'{name} must be {wanted}, not {given.lower().replace("_", " ")} '
-                          f'{value}') from None
-    params = from_dict(CameraParams, {p.name: p.value for p in declared})
-    for name in TOPIC_PARAMS:
-        try:
-            node.resolve_topic_name(getattr(params, name))
-        except rclpy_implementation.RCLError as exc:
-            reason = rcl_reason(exc).removeprefix('failed to resolve name: ')
-            raise ConfigError(f'{name} {getattr(params, name)!r} is not a valid topic name: '
-                              f'{reason}') from None
-    return params
 
 
 class CameraLaneDetectorNode(Node):
@@ -93,7 +45,7 @@ class CameraLaneDetectorNode(Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__(NODE_NAME, **kwargs)
-        self.params = declare_camera_params(self)
+        self.params = declare_params(self, CameraParams)
         self.pipeline = CameraPipeline(
             self.params, load_camera_detector(self.params.checkpoint, self.params.model_threads))
         self.get_logger().info(f'parameters: {self.params}')
@@ -250,41 +202,6 @@ class CameraLaneDetectorNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    """Run the node until a signal; 0 when stopped, 2 (one line) for bad parameters or weights.
-
-    Signals as lane_detector's main() (fhld_ros/ros/node.py): a stop at any moment exits 0.
-    """
-    try:
-        rclpy.init(args=args)
-    except rclpy_implementation.RCLError as exc:  # arguments rcl cannot parse ('-p name:=')
-        reason = rcl_reason(exc).removeprefix('failed to initialize rcl: ')
-        print(f'{NODE_NAME}: error: bad ROS arguments: {reason}', file=sys.stderr)
-        return 2
-    try:
-        with stop.held():  # signals are recorded while it is built: see ros/stop.py
-            node = CameraLaneDetectorNode()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        rclpy.try_shutdown()
-        return 0
-    except ConfigError as exc:
-        if not rclpy.ok():
-            return 0  # stopped by a signal while the node was being built
-        print(f'{NODE_NAME}: error: {exc}', file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-    except Exception:
-        if rclpy.ok():  # else a signal made whatever ran then fail: that is the stop
-            raise
-        return 0
-    if stop.received:
-        node.destroy_node()
-        rclpy.try_shutdown()
-        return 0
-    sys.setswitchinterval(GIL_SWITCH_SEC)
-    gc.freeze()  # as lane_detector: full collections of start-up objects stalled callbacks
-    try:
-        spin(node)
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    """Run the node until a signal; 0 when stopped, 2 (one line) for bad parameters or weights
+    (ros/executor.py: run_node, as lane_detector's)."""
+    return run_node(NODE_NAME, CameraLaneDetectorNode, args)

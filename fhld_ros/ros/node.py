@@ -13,32 +13,26 @@ and messages: docs/design.md §3.
 """
 from __future__ import annotations
 
-import gc
-import sys
 import threading
 import time
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry, Path
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import QoSMessageLostInfo, SubscriptionEventCallbacks
-from rclpy.executors import ExternalShutdownException
-from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
 from fhld_ros.detectors import make_detector
-from fhld_ros.errors import ConfigError
 from fhld_ros.lane_output import LANE_TOPICS, lane_messages
+from fhld_ros.parameters import DetectorParams
 from fhld_ros.pipeline import Intake, LanePipeline
-from fhld_ros.ros import stop
-from fhld_ros.ros.declare import declare_detector_params, rcl_reason
+from fhld_ros.ros.declare import declare_params
 from fhld_ros.ros.diagnostics import NodeStats
-from fhld_ros.ros.executor import HandoffExecutor
+from fhld_ros.ros.executor import run_node
 from fhld_ros.ros.odometry_wait import InputSilence, LateSweeps
 from msg_adapters.family import rclpy_family
 
@@ -47,7 +41,6 @@ QOS_CHECK_SEC = 1.0
 # Detection runs when one is due (LanePipeline.due_window). The cloud callback wakes it; the
 # timer polls this often (ROS time) as a fallback.
 POLL_HZ = 20.0
-GIL_SWITCH_SEC = 0.0005  # see main()
 FAMILY = rclpy_family()
 
 
@@ -59,7 +52,7 @@ class LaneDetectorNode(Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__('lane_detector', **kwargs)
-        self.params = declare_detector_params(self)
+        self.params = declare_params(self, DetectorParams)
         self.pipeline = LanePipeline(self.params, make_detector(self.params))
         # logged once they proved usable: a bad value gives one line on stderr, nothing else
         self.get_logger().info(f'parameters: {self.params}')
@@ -296,76 +289,7 @@ class LaneDetectorNode(Node):
             header=FAMILY.header(self.get_clock().now().nanoseconds, ''), status=[status]))
 
 
-def spin(node: Node) -> None:
-    """Spin `node` until Ctrl-C or shutdown, then stop the executor's workers before returning."""
-    # A MultiThreadedExecutor that cannot starve its workers (see fhld_ros/ros/executor.py)
-    executor = HandoffExecutor(num_threads=3, context=node.context)
-    executor.add_node(node)
-    try:
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except rclpy_implementation.RCLError:
-        if node.context.ok():
-            raise
-        # a signal shut the context down while the executor was building its wait set
-    finally:
-        executor.shutdown()
-        # Jazzy's Executor.shutdown() does not wait for callbacks still running in the pool;
-        # destroying the node under one crashed the process (SIGSEGV, ~1 in 8 stops on a busy
-        # machine). Join the pool first.
-        pool = getattr(executor, '_executor', None)
-        if pool is not None:
-            pool.shutdown(wait=True)
-
-
 def main(args: list[str] | None = None) -> int:
-    """Run the node until a signal; 0 when stopped, 2 (one line) for bad parameters or weights.
-
-    A SIGINT or SIGTERM at any moment exits 0 without a traceback: rclpy shuts the context down,
-    and whatever rclpy call comes next fails; that failure is the stop, not an error. (Before
-    rclpy.init, fhld_ros/ros/lane_detector.py takes care of the signals.)
-    """
-    try:
-        rclpy.init(args=args)
-    except rclpy_implementation.RCLError as exc:  # arguments rcl cannot parse ('-p name:=')
-        reason = rcl_reason(exc).removeprefix('failed to initialize rcl: ')
-        print(f'lane_detector: error: bad ROS arguments: {reason}', file=sys.stderr)
-        return 2
-    try:
-        with stop.held():  # signals are recorded while it is built: see ros/stop.py
-            node = LaneDetectorNode()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        rclpy.try_shutdown()
-        return 0
-    except ConfigError as exc:
-        if not rclpy.ok():
-            return 0  # stopped by a signal while the node was being built
-        # bad parameters or checkpoint: one line naming the problem, no traceback
-        print(f'lane_detector: error: {exc}', file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-    except Exception:
-        # A signal while the node is being built makes whatever runs then fail (an rclpy call
-        # on the shut-down context, an extension's import interrupted mid-way): that is the stop.
-        if rclpy.ok():
-            raise
-        return 0
-    if stop.received:  # a held stop: the node was built, but nothing is to run
-        node.destroy_node()
-        rclpy.try_shutdown()
-        return 0
-    # The executor's Python wait loop and the detection thread share the GIL; the model gives it
-    # up in every torch op and, at the default 5 ms switch interval, waited that long to get it
-    # back each time (measured: detections 2x slower in the node than alone).
-    sys.setswitchinterval(GIL_SWITCH_SEC)
-    # A full garbage collection walks every object torch and rclpy created at start-up (~200k,
-    # ~95 ms here) holding the GIL, and stalled callbacks at random (measured: cloud callbacks
-    # up to 60-100 ms late). Frozen objects are left out of collections.
-    gc.freeze()
-    try:
-        spin(node)
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    """Run the node until a signal; 0 when stopped, 2 (one line) for bad parameters or weights
+    (ros/executor.py: run_node)."""
+    return run_node('lane_detector', LaneDetectorNode, args)
