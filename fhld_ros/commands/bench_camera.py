@@ -27,7 +27,6 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -46,7 +45,7 @@ from fhld_ros.salad.sample import CameraLaneSample
 from fhld_ros.salad.sim_source import simulated_samples
 from fhld_ros.salad.targets import lane_targets, row_statistics
 from msg_adapters.camera import camera_info_msg, image_to_msg
-from msg_adapters.family import rclpy_family, rosbags_family
+from msg_adapters.family import rosbags_family
 
 BENCH_SEED = 4_000_123  # a held-out SALAD seed (sim_source.salad_seeds('test') starts at 4e6)
 SIZE = (960, 540)
@@ -137,43 +136,17 @@ class _LiveClient:
     """Publishes images + camera_info, times /lanes arrivals, keeps the node's /diagnostics."""
 
     def __init__(self, context, sample: CameraLaneSample) -> None:
-        import rclpy
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.qos import QoSProfile, ReliabilityPolicy
-
-        from msg_adapters.lanes import marker_array_stamp_ns
-        self.family = family = rclpy_family()
-        self.node = rclpy.create_node('fhld_bench_camera', context=context)
-        self.arrivals: list[tuple[int, float]] = []
-        self.diag: dict[str, str] = {}
-        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        self.node.create_subscription(
-            family.cls('visualization_msgs/msg/MarkerArray'), 'lanes',
-            lambda raw: self.arrivals.append((marker_array_stamp_ns(raw), time.monotonic())),
-            reliable, raw=True)
-        self.node.create_subscription(
-            family.cls('diagnostic_msgs/msg/DiagnosticArray'), 'diagnostics',
-            lambda m: self.diag.update({kv.key: kv.value for st in m.status
-                                        for kv in st.values}), reliable)
-        self.image = self.node.create_publisher(family.cls('sensor_msgs/msg/Image'),
-                                                'camera/image_raw', reliable)
-        self.info = self.node.create_publisher(family.cls('sensor_msgs/msg/CameraInfo'),
-                                               'camera/camera_info', reliable)
+        from fhld_ros.commands.bench_e2e import LanesClient  # rclpy: only for camera_live
+        self.ros = LanesClient(context, 'fhld_bench_camera')
+        self.family = family = self.ros.family
+        self.image = self.ros.node.create_publisher(family.cls('sensor_msgs/msg/Image'),
+                                                    'camera/image_raw', self.ros.reliable)
+        self.info = self.ros.node.create_publisher(family.cls('sensor_msgs/msg/CameraInfo'),
+                                                   'camera/camera_info', self.ros.reliable)
         self.image_msg = image_to_msg(family, family.header(0, 'camera'), sample.image)
         self.info_msg = camera_info_msg(family, family.header(0, 'camera'), *SIZE,
                                         sample.intrinsics)
-        self.executor = SingleThreadedExecutor(context=context)
-        self.executor.add_node(self.node)
-        self.spinner = threading.Thread(target=self.executor.spin, daemon=True)
-        self.spinner.start()
-
-    def wait_for(self, node: subprocess.Popen) -> None:
-        deadline = time.monotonic() + NODE_START_TIMEOUT_SEC
-        while self.image.get_subscription_count() == 0 or self.info.get_subscription_count() == 0:
-            if time.monotonic() > deadline or node.poll() is not None:
-                raise RuntimeError('the camera_lane_detector node did not come up')
-            time.sleep(0.1)
-        time.sleep(1.0)
+        self.ros.start()
 
     def publish(self, count: int) -> dict[int, float]:
         """`count` images at RATE_HZ on the wall clock; stamp -> publish time of each."""
@@ -194,12 +167,6 @@ class _LiveClient:
             self.image.publish(self.image_msg)
         return published
 
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.spinner.join(timeout=10)
-        self.node.destroy_node()
-
-
 def bench_camera_live(seconds: float = SECONDS) -> dict[str, float | str]:
     """`fhld bench camera_live`: see the module doc."""
     import rclpy
@@ -217,25 +184,26 @@ def bench_camera_live(seconds: float = SECONDS) -> dict[str, float | str]:
         rclpy.init(context=context)
         client = _LiveClient(context, sample)
         try:
-            client.wait_for(node)
+            client.ros.wait_for(node, (client.image, client.info), 'camera_lane_detector',
+                               NODE_START_TIMEOUT_SEC)
             published = client.publish(int(seconds * RATE_HZ))
             time.sleep(2.0)  # the last detections and a /diagnostics
         finally:
             node.terminate()
             node.wait(timeout=30)
-            client.close()
+            client.ros.close()
             context.try_shutdown()
-    latencies = np.array([(t - published[s]) * 1e3 for s, t in client.arrivals
+    latencies = np.array([(t - published[s]) * 1e3 for s, t in client.ros.arrivals
                           if s in published])
     if latencies.size < 3:
         raise RuntimeError(f'only {latencies.size} /lanes messages arrived')
     return {'camera_live_weights': weights, 'camera_live_seconds': float(seconds),
             'camera_live_images_published': float(len(published)),
             'camera_live_images_dropped': float(len(published) - len(
-                {s for s, _ in client.arrivals} & set(published))),
+                {s for s, _ in client.ros.arrivals} & set(published))),
             'camera_live_latency_ms_p50': float(np.percentile(latencies, 50)),
             'camera_live_latency_ms_p95': float(np.percentile(latencies, 95)),
-            **{f'camera_live_node_{k}': float(v) for k, v in client.diag.items()
+            **{f'camera_live_node_{k}': float(v) for k, v in client.ros.diag.items()
                if k.startswith(('stage_', 'latency_ms_'))},
-            **{f'camera_live_node_{k}': float(client.diag.get(k, 0.0))
+            **{f'camera_live_node_{k}': float(client.ros.diag.get(k, 0.0))
                for k in NODE_COUNTERS}}

@@ -57,15 +57,16 @@ def _sweeps(count: int) -> list[Sweep]:
     return [sim.sweep(k) for k in range(count)]
 
 
-class _BenchClient:
-    """This process's side: publishes sweeps and odometry, times /lanes, keeps /diagnostics."""
+class LanesClient:
+    """A bench's side of a node under test (its own process): times /lanes arrivals and keeps
+    the node's newest /diagnostics values. Add publishers to `node`, then start()."""
 
-    def __init__(self, context: rclpy.Context) -> None:
+    def __init__(self, context: rclpy.Context, name: str) -> None:
         self.family = family = rclpy_family()
-        self.node = rclpy.create_node('fhld_bench_e2e', context=context)
+        self.node = rclpy.create_node(name, context=context)
         self.arrivals: list[tuple[int, float]] = []  # (/lanes stamp, arrival)
-        self.node_diag: dict[str, str] = {}
-        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self.diag: dict[str, str] = {}
+        self.reliable = reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         # Raw bytes: deserialising every MarkerArray in Python held this process's GIL for ms
         # and delayed the next publish (measured: sweeps published right after a /lanes arrival
         # took 33 ms to reach the node, 9 ms otherwise).
@@ -75,26 +76,43 @@ class _BenchClient:
             reliable, raw=True)
         self.node.create_subscription(
             family.cls('diagnostic_msgs/msg/DiagnosticArray'), 'diagnostics',
-            lambda m: self.node_diag.update({kv.key: kv.value for st in m.status
-                                             for kv in st.values}),
+            lambda m: self.diag.update({kv.key: kv.value for st in m.status
+                                        for kv in st.values}),
             reliable)
-        self.cloud_cls = family.cls('sensor_msgs/msg/PointCloud2')
-        self.points = self.node.create_publisher(self.cloud_cls, 'points', reliable)
-        self.odom = self.node.create_publisher(family.cls('nav_msgs/msg/Odometry'), 'odom',
-                                               reliable)
-        self.executor = SingleThreadedExecutor(context=context)
+
+    def start(self) -> None:
+        self.executor = SingleThreadedExecutor(context=self.node.context)
         self.executor.add_node(self.node)
         self.spinner = threading.Thread(target=self.executor.spin, daemon=True)
         self.spinner.start()
 
-    def wait_for(self, node: subprocess.Popen) -> None:
-        """Until the node subscribes to both inputs (RuntimeError when it dies or times out)."""
-        deadline = time.monotonic() + NODE_START_TIMEOUT_SEC
-        while self.points.get_subscription_count() == 0 or self.odom.get_subscription_count() == 0:
+    def wait_for(self, node: subprocess.Popen, inputs: tuple, name: str,
+                 timeout_sec: float = NODE_START_TIMEOUT_SEC) -> None:
+        """Until `node` (`name`) subscribes to all `inputs` (publishers): RuntimeError when it
+        dies or times out."""
+        deadline = time.monotonic() + timeout_sec
+        while any(pub.get_subscription_count() == 0 for pub in inputs):
             if time.monotonic() > deadline or node.poll() is not None:
-                raise RuntimeError('the lane_detector node did not come up')
+                raise RuntimeError(f'the {name} node did not come up')
             time.sleep(0.1)
         time.sleep(1.0)
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.spinner.join(timeout=10)
+        self.node.destroy_node()
+
+
+class _BenchClient(LanesClient):
+    """This process's side: publishes sweeps and odometry, times /lanes, keeps /diagnostics."""
+
+    def __init__(self, context: rclpy.Context) -> None:
+        super().__init__(context, 'fhld_bench_e2e')
+        self.cloud_cls = self.family.cls('sensor_msgs/msg/PointCloud2')
+        self.points = self.node.create_publisher(self.cloud_cls, 'points', self.reliable)
+        self.odom = self.node.create_publisher(self.family.cls('nav_msgs/msg/Odometry'), 'odom',
+                                               self.reliable)
+        self.start()
 
     def publish(self, sweeps: list[Sweep], count: int) -> dict[int, float]:
         """`count` sweeps at RATE_HZ on the wall clock; stamp -> publish time of each."""
@@ -111,12 +129,6 @@ class _BenchClient:
             published[stamp] = time.monotonic()
             self.points.publish(cloud)
         return published
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.spinner.join(timeout=10)
-        self.node.destroy_node()
-
 
 def _start_node() -> subprocess.Popen:
     ros_args = ['--ros-args', *[a for p in PARAMS for a in ('-p', p)]] if PARAMS else []
@@ -184,7 +196,7 @@ def _measure(seconds: float, dds: str) -> dict[str, float]:
     rclpy.init(context=context)
     client = _BenchClient(context)
     try:
-        client.wait_for(node)
+        client.wait_for(node, (client.points, client.odom), 'lane_detector')
         rss = _RssSampler(node.pid)
         published = client.publish(sweeps, int(seconds * RATE_HZ))
         memory = rss.summary()
@@ -194,7 +206,7 @@ def _measure(seconds: float, dds: str) -> dict[str, float]:
         node.wait(timeout=20)
         client.close()
         context.try_shutdown()
-    return {**_summary(seconds, published, client.arrivals, client.node_diag), **memory}
+    return {**_summary(seconds, published, client.arrivals, client.diag), **memory}
 
 
 def _transport_keys(dds: str, summary: dict[str, float]) -> dict[str, float]:

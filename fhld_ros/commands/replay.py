@@ -22,13 +22,12 @@ from tqdm import tqdm
 
 from fhld_ros.bagio import BagWriter, check_output, read_messages, topic_counts
 from fhld_ros.commands import replay_camera
-from fhld_ros.commands.replay_camera import CAMERA_INFO_TOPIC, IMAGE_TOPIC
+from fhld_ros.commands.replay_camera import CAMERA_INFO_TOPIC, IMAGE_TOPIC, stamp_s
 from fhld_ros.detectors import make_detector
 from fhld_ros.errors import ConfigError
 from fhld_ros.lane_output import LANE_TOPICS, lane_messages
 from fhld_ros.parameters import DetectorParams, load_params_yaml
 from fhld_ros.pipeline import LanePipeline
-from msg_adapters.family import stamp_to_ns
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -85,7 +84,7 @@ def replay(in_bag: Path, out_bag: Path, params: DetectorParams, points_topic: st
             cloud = topic == points_topic
             intake = pipeline.receive_cloud(msg) if cloud else pipeline.receive_odometry(msg)
             if intake.dropped is not None:
-                bar.write(f'dropped {"cloud" if cloud else "odometry"} at {_stamp_s(msg)}: '
+                bar.write(f'dropped {"cloud" if cloud else "odometry"} at {stamp_s(msg)}: '
                           f'{intake.dropped}')
             detect_due()
         # the bag ended before the odometry of its last sweeps: they go in one at a time
@@ -101,13 +100,6 @@ def replay(in_bag: Path, out_bag: Path, params: DetectorParams, points_topic: st
         if counters[key]:
             stats[name] = counters[key]
     return stats
-
-
-def _stamp_s(msg: object) -> str:
-    try:
-        return f'{stamp_to_ns(msg.header.stamp) * 1e-9:.3f} s'
-    except (AttributeError, TypeError, ValueError):
-        return 'an unreadable stamp'
 
 
 def run(args: argparse.Namespace) -> int:

@@ -53,7 +53,7 @@ def replay_camera(in_bag: Path, out_bag: Path, params: CameraParams,
                 problem = pipeline.receive_image(msg).dropped
             if problem is not None:
                 kind = 'camera_info' if topic == camera_info_topic else 'image'
-                bar.write(f'dropped {kind} at {_stamp_s(msg)}: {problem}')
+                bar.write(f'dropped {kind} at {stamp_s(msg)}: {problem}')
             while (out := pipeline.detect()) is not None:
                 for suffix, cdr in lane_messages(out).items():
                     writer.write(lanes_topic + suffix, LANE_TOPICS[suffix], out.stamp_ns, cdr)
@@ -65,7 +65,8 @@ def replay_camera(in_bag: Path, out_bag: Path, params: CameraParams,
             'detections': detections}
 
 
-def _stamp_s(msg: object) -> str:
+def stamp_s(msg: object) -> str:
+    """A message's stamp for a warning (both replays): seconds, or that it is unreadable."""
     try:
         return f'{stamp_to_ns(msg.header.stamp) * 1e-9:.3f} s'
     except (AttributeError, TypeError, ValueError):
