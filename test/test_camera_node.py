@@ -13,7 +13,6 @@ from __future__ import annotations
 import dataclasses
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -21,8 +20,7 @@ import pytest
 import rclpy
 import torch
 from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile, ReliabilityPolicy
-from ros_helpers import spin_in_background, wait_until
+from ros_helpers import RawLaneOutputs, feed, spinning, wait_until
 from sensor_msgs.msg import CameraInfo, Image
 
 from fhld_ros.bagio import BagWriter, read_raw
@@ -93,29 +91,15 @@ def drive(tmp_path_factory) -> tuple[Path, Path]:
     return root / 'user', _checkpoint(root / 'salad.pt')
 
 
-class Probe:
+class Probe(RawLaneOutputs):
     """Publishes images and camera_info; keeps the node's lane topics as serialized messages
     and its newest /diagnostics values."""
 
     def __init__(self, context: rclpy.Context) -> None:
-        from diagnostic_msgs.msg import DiagnosticArray
-        from nav_msgs.msg import Path as PathMsg
-        from visualization_msgs.msg import MarkerArray
-        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-        self.node = rclpy.create_node('camera_probe', context=context)
-        types = {'visualization_msgs/msg/MarkerArray': MarkerArray,
-                 'nav_msgs/msg/Path': PathMsg}
-        self.got: dict[str, list[bytes]] = {suffix: [] for suffix in LANE_TOPICS}
-        for suffix, name in LANE_TOPICS.items():
-            self.node.create_subscription(types[name], 'lanes' + suffix,
-                                          self.got[suffix].append, qos, raw=True)
-        self.diagnostics: dict[str, str] = {}
-        self.node.create_subscription(
-            DiagnosticArray, 'diagnostics', lambda m: self.diagnostics.update(
-                {kv.key: kv.value for kv in m.status[0].values}), qos)
-        self.image = self.node.create_publisher(Image, 'camera/image_raw', qos)
-        self.info = self.node.create_publisher(CameraInfo, 'camera/camera_info', qos)
-        self.executor, self.thread = spin_in_background(self.node)
+        super().__init__(context, 'camera_probe')
+        self.image = self.node.create_publisher(Image, 'camera/image_raw', self.qos)
+        self.info = self.node.create_publisher(CameraInfo, 'camera/camera_info', self.qos)
+        self.start()
 
 
 def _handled(node) -> tuple[int, int]:
@@ -123,23 +107,6 @@ def _handled(node) -> tuple[int, int]:
     with node.lock:
         c = node.pipeline.counters
         return c['camera_infos'] + c['bad_camera_info'], c['images'] + c['bad_images']
-
-
-def _settled(node, probe: Probe) -> bool:
-    with node.lock:
-        due, detections = node.pipeline.detection_due, node.pipeline.counters['detections']
-    return (not due and not node.detecting.locked()
-            and all(len(got) == detections for got in probe.got.values()))
-
-
-def _feed(node, probe: Probe, bag: Path) -> None:
-    for topic, _, _, raw in read_raw(bag, [CAMERA_INFO_TOPIC, IMAGE_TOPIC]):
-        infos, images = _handled(node)
-        publisher, expected = ((probe.info, (infos + 1, images)) if topic == CAMERA_INFO_TOPIC
-                               else (probe.image, (infos, images + 1)))
-        publisher.publish(raw)
-        assert wait_until(lambda want=expected: _handled(node) == want, 20), (topic, expected)
-        assert wait_until(lambda: _settled(node, probe), 30), 'the detections never settled'
 
 
 def _check_contract(raw: bytes, frame: str) -> int:
@@ -157,7 +124,6 @@ def _check_contract(raw: bytes, frame: str) -> int:
 def test_node_publishes_the_contract_and_the_replays_messages(drive, tmp_path, rclpy_context,
                                                               one_torch_thread):
     from fhld_ros.ros.camera_node import CameraLaneDetectorNode
-    from fhld_ros.ros.node import spin
     bag, checkpoint = drive
     params = CameraParams(checkpoint=str(checkpoint))
     stats = replay_camera(bag, tmp_path / 'replayed', params, progress=False)
@@ -169,15 +135,14 @@ def test_node_publishes_the_contract_and_the_replays_messages(drive, tmp_path, r
 
     node = CameraLaneDetectorNode(context=rclpy_context, parameter_overrides=[
         Parameter('checkpoint', value=str(checkpoint))])
-    spinner = threading.Thread(target=spin, args=(node,), daemon=True)
-    spinner.start()
     probe = Probe(rclpy_context)
-    try:
+    with spinning(node, probe):
         assert wait_until(lambda: probe.image.get_subscription_count() >= 1
                           and probe.info.get_subscription_count() >= 1
                           and all(node.count_subscribers('lanes' + suffix) >= 1
                                   for suffix in LANE_TOPICS), 30), 'discovery never completed'
-        _feed(node, probe, bag)
+        feed(node, probe, bag, {CAMERA_INFO_TOPIC: (probe.info, 0),
+                                IMAGE_TOPIC: (probe.image, 1)}, _handled, 30)
         for suffix in LANE_TOPICS:
             assert probe.got[suffix] == replayed[suffix], f'/lanes{suffix} differs'
         counters = node.pipeline.counters
@@ -189,12 +154,6 @@ def test_node_publishes_the_contract_and_the_replays_messages(drive, tmp_path, r
         assert values['last_error'].startswith('bad_camera_info: ')
         assert float(values['latency_ms_p95']) >= float(values['latency_ms_p50']) > 0
         assert {'stage_warp_ms_p50', 'stage_model_ms_p50', 'stage_decode_ms_p50'} <= set(values)
-    finally:
-        rclpy_context.try_shutdown()
-        spinner.join(timeout=20)
-        probe.thread.join(timeout=20)
-        node.destroy_node()
-        probe.node.destroy_node()
 
 
 def _node_error(*ros_args: str) -> subprocess.CompletedProcess:

@@ -12,25 +12,20 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import pytest
 import rclpy
-from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
-from nav_msgs.msg import Path as PathMsg
 from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile, ReliabilityPolicy
-from ros_helpers import spin_in_background, wait_until
+from ros_helpers import RawLaneOutputs, feed, spinning, wait_until
 from sensor_msgs.msg import PointCloud2
-from visualization_msgs.msg import MarkerArray
 
 from fhld_ros.bagio import BagWriter, read_raw
 from fhld_ros.commands.replay import replay
 from fhld_ros.lane_output import LANE_TOPICS
 from fhld_ros.parameters import DetectorParams
-from fhld_ros.ros.node import LaneDetectorNode, spin
+from fhld_ros.ros.node import LaneDetectorNode
 from msg_adapters.family import rosbags_family
 
 pytestmark = [pytest.mark.ros]
@@ -77,22 +72,14 @@ def user_bag(tmp_path_factory) -> Path:
     return root / 'user'
 
 
-class RawOutputs:
+class RawOutputs(RawLaneOutputs):
     """The node's lane topics as serialized messages, in arrival order per topic."""
 
     def __init__(self, context: rclpy.Context) -> None:
-        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-        self.node = rclpy.create_node('parity_probe', context=context)
-        types = {'visualization_msgs/msg/MarkerArray': MarkerArray,
-                 'nav_msgs/msg/Path': PathMsg}
-        self.got: dict[str, list[bytes]] = {suffix: [] for suffix in LANE_TOPICS}
-        for suffix, name in LANE_TOPICS.items():
-            self.node.create_subscription(types[name], 'lanes' + suffix,
-                                          self.got[suffix].append, qos, raw=True)
-        self.node.create_subscription(DiagnosticArray, 'diagnostics', lambda _: None, qos)
-        self.points = self.node.create_publisher(PointCloud2, 'points', qos)
-        self.odom = self.node.create_publisher(Odometry, 'odom', qos)
-        self.executor, self.thread = spin_in_background(self.node)
+        super().__init__(context, 'parity_probe')
+        self.points = self.node.create_publisher(PointCloud2, 'points', self.qos)
+        self.odom = self.node.create_publisher(Odometry, 'odom', self.qos)
+        self.start()
 
 
 def _handled(node: LaneDetectorNode) -> tuple[int, int]:
@@ -101,24 +88,6 @@ def _handled(node: LaneDetectorNode) -> tuple[int, int]:
         c = node.pipeline.counters
         return (c['clouds'] + c['bad_clouds'] + len(node.pipeline.waiting_stamps),
                 c['odometry'] + c['bad_odometry'])
-
-
-def _settled(node: LaneDetectorNode, probe: RawOutputs) -> bool:
-    with node.lock:
-        due, detections = node.pipeline.detection_due, node.pipeline.counters['detections']
-    return (not due and not node.detecting.locked()
-            and all(len(got) == detections for got in probe.got.values()))
-
-
-def _feed(node: LaneDetectorNode, probe: RawOutputs, bag: Path) -> None:
-    for topic, _, _, raw in read_raw(bag, ['/points', '/odom']):
-        clouds, poses = _handled(node)
-        publisher, expected = ((probe.points, (clouds + 1, poses)) if topic == '/points'
-                               else (probe.odom, (clouds, poses + 1)))
-        publisher.publish(raw)
-        assert wait_until(lambda want=expected: _handled(node) == want, 20), \
-            (topic, _handled(node))
-        assert wait_until(lambda: _settled(node, probe), 20), 'the detections never settled'
 
 
 def test_node_and_replay_publish_the_same_messages(user_bag, tmp_path, rclpy_context):
@@ -130,15 +99,14 @@ def test_node_and_replay_publish_the_same_messages(user_bag, tmp_path, rclpy_con
 
     node = LaneDetectorNode(context=rclpy_context, parameter_overrides=[
         Parameter(name, value=value) for name, value in PARAMS.items()])
-    spinner = threading.Thread(target=spin, args=(node,), daemon=True)
-    spinner.start()
     probe = RawOutputs(rclpy_context)
-    try:
+    with spinning(node, probe):
         assert wait_until(lambda: probe.points.get_subscription_count() >= 1
                           and probe.odom.get_subscription_count() >= 2
                           and all(node.count_subscribers(node.params.lanes_topic + suffix) >= 1
                                   for suffix in LANE_TOPICS), 30), 'discovery never completed'
-        _feed(node, probe, user_bag)
+        feed(node, probe, user_bag, {'/points': (probe.points, 0), '/odom': (probe.odom, 1)},
+             _handled, 20)
         # the end of the bag: what still waits for odometry goes in as a replay lets it in
         with node.lock:
             assert node.pipeline.waiting_stamps == []
@@ -147,9 +115,3 @@ def test_node_and_replay_publish_the_same_messages(user_bag, tmp_path, rclpy_con
         assert node.pipeline.counters['bad_clouds'] == 1
         assert node.pipeline.counters['bad_odometry'] == 1
         assert node.pipeline.counters['sweeps_skipped'] == 0  # fed at its pace: none overtaken
-    finally:
-        rclpy_context.try_shutdown()
-        spinner.join(timeout=20)
-        probe.thread.join(timeout=20)
-        node.destroy_node()
-        probe.node.destroy_node()
