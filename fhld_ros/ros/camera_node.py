@@ -15,25 +15,22 @@ import threading
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
-from nav_msgs.msg import Path
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import QoSMessageLostInfo, SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
-from visualization_msgs.msg import MarkerArray
 
-from fhld_ros.lane_output import LANE_TOPICS, lane_messages
+from fhld_ros.lane_output import lane_messages
 from fhld_ros.ros.camera_diagnostics import CameraStats
 from fhld_ros.ros.declare import declare_params
 from fhld_ros.ros.executor import run_node
+from fhld_ros.ros.shell import create_housekeeping, create_outputs, wanted_reliability
 from fhld_ros.salad.camera_pipeline import CameraPipeline, ImageIntake, load_camera_detector
 from fhld_ros.salad.parameters import NODE_NAME, CameraParams
 from msg_adapters.family import rclpy_family
 
 WARN_THROTTLE_SEC = 5.0
-QOS_CHECK_SEC = 1.0
 FAMILY = rclpy_family()
 
 
@@ -71,21 +68,13 @@ class CameraLaneDetectorNode(Node):
             CameraInfo, p.camera_info_topic, self.on_camera_info,
             QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT),
             callback_group=self.inputs)
-        out_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
-        types = {'visualization_msgs/msg/MarkerArray': MarkerArray, 'nav_msgs/msg/Path': Path}
-        self.lane_pubs = {suffix: self.create_publisher(types[name], p.lanes_topic + suffix,
-                                                        out_qos)
-                          for suffix, name in LANE_TOPICS.items()}
-        self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', out_qos)
+        self.lane_pubs, self.diag_pub = create_outputs(self, p.lanes_topic)
         # Reentrant: a wake-up that finds a detection running returns at once (never queues)
         self.wake_detection = self.create_guard_condition(
             self.on_detection_due, callback_group=ReentrantCallbackGroup())
-        wall = Clock(clock_type=ClockType.STEADY_TIME)  # diagnostics go on when a bag stops
-        self.create_timer(1.0, self.publish_diagnostics,
-                          callback_group=MutuallyExclusiveCallbackGroup(), clock=wall)
-        if p.input_reliability == 'auto':
-            self.create_timer(QOS_CHECK_SEC, self.match_publisher_qos,
-                              callback_group=self.inputs, clock=wall)
+        create_housekeeping(self, self.publish_diagnostics,
+                            self.match_publisher_qos if p.input_reliability == 'auto' else None,
+                            self.inputs)
 
     def _subscribe_images(self, reliability: ReliabilityPolicy) -> None:
         if self.image_sub is not None:
@@ -102,14 +91,8 @@ class CameraLaneDetectorNode(Node):
 
     def match_publisher_qos(self) -> None:
         """input_reliability 'auto': reliable unless a best-effort publisher appears."""
-        infos = self.get_publishers_info_by_topic(
-            self.resolve_topic_name(self.params.image_topic))
-        if not infos:
-            return
-        best_effort = any(i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
-                          for i in infos)
-        wanted = ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE
-        if wanted != self.image_reliability:
+        wanted = wanted_reliability(self, self.params.image_topic)
+        if wanted is not None and wanted != self.image_reliability:
             self._subscribe_images(wanted)
 
     def _drop(self, what: str, exc: Exception) -> None:

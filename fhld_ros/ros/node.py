@@ -17,27 +17,25 @@ import threading
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
-from nav_msgs.msg import Odometry, Path
+from nav_msgs.msg import Odometry
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import QoSMessageLostInfo, SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2
-from visualization_msgs.msg import MarkerArray
 
 from fhld_ros.detectors import make_detector
-from fhld_ros.lane_output import LANE_TOPICS, lane_messages
+from fhld_ros.lane_output import lane_messages
 from fhld_ros.parameters import DetectorParams
 from fhld_ros.pipeline import Intake, LanePipeline
 from fhld_ros.ros.declare import declare_params
 from fhld_ros.ros.diagnostics import NodeStats
 from fhld_ros.ros.executor import run_node
 from fhld_ros.ros.odometry_wait import InputSilence, LateSweeps
+from fhld_ros.ros.shell import create_housekeeping, create_outputs, wanted_reliability
 from msg_adapters.family import rclpy_family
 
 WARN_THROTTLE_SEC = 5.0
-QOS_CHECK_SEC = 1.0
 # Detection runs when one is due (LanePipeline.due_window). The cloud callback wakes it; the
 # timer polls this often (ROS time) as a fallback.
 POLL_HZ = 20.0
@@ -108,12 +106,7 @@ class LaneDetectorNode(Node):
             QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE),
             callback_group=odometry,  # (a best-effort publisher simply does not match it)
             event_callbacks=SubscriptionEventCallbacks(incompatible_qos=lambda info: None))
-        out_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
-        types = {'visualization_msgs/msg/MarkerArray': MarkerArray, 'nav_msgs/msg/Path': Path}
-        self.lane_pubs = {suffix: self.create_publisher(types[name], p.lanes_topic + suffix,
-                                                        out_qos)
-                          for suffix, name in LANE_TOPICS.items()}
-        self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', out_qos)
+        self.lane_pubs, self.diag_pub = create_outputs(self, p.lanes_topic)
         # Detection polls on ROS time (sim time for bags); housekeeping follows the wall, so
         # diagnostics keep coming when a bag stops.
         self.create_timer(1.0 / max(p.rate_hz, POLL_HZ), self.on_detection_due,
@@ -122,12 +115,9 @@ class LaneDetectorNode(Node):
         # a poll period for its detection to start.
         self.wake_detection = self.create_guard_condition(self.on_detection_due,
                                                           callback_group=detection)
-        wall = Clock(clock_type=ClockType.STEADY_TIME)
-        self.create_timer(1.0, self.publish_diagnostics,
-                          callback_group=MutuallyExclusiveCallbackGroup(), clock=wall)
-        if p.input_reliability == 'auto':
-            self.create_timer(QOS_CHECK_SEC, self.match_publisher_qos,
-                              callback_group=self.inputs, clock=wall)
+        create_housekeeping(self, self.publish_diagnostics,
+                            self.match_publisher_qos if p.input_reliability == 'auto' else None,
+                            self.inputs)
 
     def _subscribe_points(self, reliability: ReliabilityPolicy) -> None:
         if self.points_sub is not None:
@@ -146,14 +136,8 @@ class LaneDetectorNode(Node):
 
     def match_publisher_qos(self) -> None:
         """input_reliability 'auto': reliable unless a best-effort publisher appears."""
-        infos = self.get_publishers_info_by_topic(
-            self.resolve_topic_name(self.params.points_topic))
-        if not infos:
-            return
-        best_effort = any(i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
-                          for i in infos)
-        wanted = ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE
-        if wanted != self.points_reliability:
+        wanted = wanted_reliability(self, self.params.points_topic)
+        if wanted is not None and wanted != self.points_reliability:
             self._subscribe_points(wanted)
 
     def _drop(self, what: str, exc: Exception) -> None:
