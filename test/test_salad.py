@@ -180,3 +180,17 @@ def test_config_values_are_checked_where_declared():
                          ({'camera': VirtualCamera(focal=-1.0)}, 'camera.focal must be')):
         with pytest.raises(ConfigError, match=message):
             dataclasses.replace(SaladConfig(), **bad).validate()
+
+
+def test_the_shipped_weights_find_the_lanes_of_a_held_out_simulated_image():
+    from fhld_ros.salad.figure import project
+    from fhld_ros.salad.sim_source import salad_seeds, simulated_samples
+
+    detector = SaladDetector()  # fhld_ros/checkpoints/salad.pt, weights_only
+    assert detector.info['meta']['steps'] > 0
+    sample = next(simulated_samples(salad_seeds('test', 1)[0], 1))
+    lanes, scores = detector(sample.image, sample.intrinsics)
+    gt = cKDTree(np.concatenate([project(lane, sample.intrinsics) for lane in sample.lanes]))
+    # in the image the lanes lie on the GT lines (their depth is the weak part, salad.md)
+    on_gt = [np.median(gt.query(project(lane, sample.intrinsics))[0]) < 3.0 for lane in lanes]
+    assert len(lanes) >= 4 and sum(on_gt) >= 4, (len(lanes), on_gt)
