@@ -194,3 +194,14 @@ def test_the_shipped_weights_find_the_lanes_of_a_held_out_simulated_image():
     # in the image the lanes lie on the GT lines (their depth is the weak part, salad.md)
     on_gt = [np.median(gt.query(project(lane, sample.intrinsics))[0]) < 3.0 for lane in lanes]
     assert len(lanes) >= 4 and sum(on_gt) >= 4, (len(lanes), on_gt)
+
+
+def test_an_autolabel_once_json_gives_a_real_image_its_lanes(tmp_path):
+    from fhld_ros.salad.real_images import with_lanes
+
+    path = tmp_path / 'lanes.json'
+    path.write_text('{"lanes": [[[0.1, 1.8, 6.0], [0.3, 1.8, 19.0]]], "calibration": []}')
+    image = np.zeros((4, 4, 3), dtype=np.uint8)
+    sample = with_lanes(CameraLaneSample(image, np.eye(3), [], 'pjlab'), path)
+    assert sample.name == 'pjlab' and len(sample.lanes) == 1
+    np.testing.assert_allclose(sample.lanes[0][-1], [0.3, 1.8, 19.0])

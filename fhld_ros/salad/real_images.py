@@ -30,7 +30,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='the real_scans folder (default ../shared/real_scans)')
     parser.add_argument('--checkpoint', type=Path, default=DEFAULT_SALAD_CHECKPOINT)
     parser.add_argument('--draw', type=Path, metavar='DIR', help='write <name>.jpg per image')
+    parser.add_argument('--pjlab-gt', type=Path, metavar='JSON',
+                        help="the PJLab image's lanes from its hand 2D labels lifted by `fhld "
+                        "autolabel --once-json` (docs/salad.md): scores that image too")
     parser.add_argument('--json', action='store_true')
+
+
+def with_lanes(sample: CameraLaneSample, once_json: Path) -> CameraLaneSample:
+    """The sample with the 3D lanes of an ONCE-style JSON ({"lanes": [[[x, y, z], ...]]})."""
+    lanes = [np.asarray(lane, dtype=np.float64) for lane in
+             json.loads(once_json.read_text())['lanes']]
+    return CameraLaneSample(sample.image, sample.intrinsics, lanes, sample.name)
 
 
 def unlabelled_images(root: Path) -> Iterator[CameraLaneSample]:
@@ -63,9 +73,17 @@ def run(args: argparse.Namespace) -> int:
         row = results['openlane']['tau_0.30']
         print(f'OpenLane, {row["images"]} images, {row["gt"]} GT lanes: F1 {row["F1"]:.1f} '
               f'P {row["P"]:.1f} R {row["R"]:.1f} CD {row["CD"]:.3f} m (tau_CD 0.3)')
+    others = list(unlabelled_images(args.dir))
+    if args.pjlab_gt:
+        others = [with_lanes(s, args.pjlab_gt) if s.name == 'pjlab_center_camera' else s
+                  for s in others]
+        results['pjlab'] = score(detector, [s for s in others if s.lanes])
+        row = results['pjlab']['tau_0.30']
+        print(f'PJLab, {row["gt"]} lifted hand-labelled lanes: F1 {row["F1"]:.1f} '
+              f'P {row["P"]:.1f} R {row["R"]:.1f} CD {row["CD"]:.3f} m (tau_CD 0.3)')
     if args.draw:
         args.draw.mkdir(parents=True, exist_ok=True)
-    for sample in [*openlane, *unlabelled_images(args.dir)]:
+    for sample in [*openlane, *others]:
         lanes, scores = detector(sample.image, sample.intrinsics)
         name = sample.name.replace('/', '_')
         results.setdefault('lanes', {})[name] = len(lanes)
