@@ -193,7 +193,7 @@ class CameraPipeline:
         except ValueError as exc:
             self.camera, self.camera_problem = None, f'the newest camera_info is bad: {exc}'
             self.counters['bad_camera_info'] += 1
-            return exc
+            return exc.with_traceback(None)  # its frames would keep the message alive
         return None
 
     def add_camera_info(self, msg: Any) -> None:
@@ -206,7 +206,8 @@ class CameraPipeline:
             return self.add_image(msg)
         except ValueError as exc:
             self.counters['bad_images'] += 1
-            return ImageIntake(dropped=exc)
+            # without its traceback: its frames hold the image (as LanePipeline.receive_cloud)
+            return ImageIntake(dropped=exc.with_traceback(None))
 
     def add_image(self, msg: Any) -> ImageIntake:
         """Decode and check one image; it waits for detection when due (replacing a waiting
