@@ -16,16 +16,16 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.event_handler import QoSMessageLostInfo, SubscriptionEventCallbacks
+from rclpy.event_handler import QoSMessageLostInfo
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 
 from fhld_ros.lane_output import lane_messages
 from fhld_ros.ros.camera_diagnostics import CameraStats
 from fhld_ros.ros.declare import declare_params
 from fhld_ros.ros.executor import run_node
-from fhld_ros.ros.shell import create_housekeeping, create_outputs, wanted_reliability
+from fhld_ros.ros.shell import SensorInput, create_housekeeping, create_outputs
 from fhld_ros.salad.camera_pipeline import CameraPipeline, ImageIntake, load_camera_detector
 from fhld_ros.salad.parameters import NODE_NAME, CameraParams
 from msg_adapters.family import rclpy_family
@@ -58,11 +58,9 @@ class CameraLaneDetectorNode(Node):
         p = self.params
         # images and camera_info one at a time, in arrival order
         self.inputs = MutuallyExclusiveCallbackGroup()
-        self.image_sub = None
-        self.image_reliability: ReliabilityPolicy | None = None
-        self._subscribe_images(ReliabilityPolicy.BEST_EFFORT
-                               if p.input_reliability == 'best_effort'
-                               else ReliabilityPolicy.RELIABLE)
+        # keep last 2: only the newest image counts
+        self.images = SensorInput(self, Image, p.image_topic, self.on_image, 2, self.inputs,
+                                  self.on_lost, p.input_reliability)
         # best effort matches reliable and best-effort drivers alike; only the newest counts
         self.create_subscription(
             CameraInfo, p.camera_info_topic, self.on_camera_info,
@@ -73,27 +71,8 @@ class CameraLaneDetectorNode(Node):
         self.wake_detection = self.create_guard_condition(
             self.on_detection_due, callback_group=ReentrantCallbackGroup())
         create_housekeeping(self, self.publish_diagnostics,
-                            self.match_publisher_qos if p.input_reliability == 'auto' else None,
+                            self.images.match if p.input_reliability == 'auto' else None,
                             self.inputs)
-
-    def _subscribe_images(self, reliability: ReliabilityPolicy) -> None:
-        if self.image_sub is not None:
-            self.destroy_subscription(self.image_sub)
-        # sensor-data QoS (keep last, volatile) with the chosen reliability
-        qos = QoSProfile(history=qos_profile_sensor_data.history, depth=2,
-                         durability=qos_profile_sensor_data.durability, reliability=reliability)
-        self.image_sub = self.create_subscription(
-            Image, self.params.image_topic, self.on_image, qos, callback_group=self.inputs,
-            event_callbacks=SubscriptionEventCallbacks(message_lost=self.on_lost))
-        self.image_reliability = reliability
-        self.get_logger().info(f'subscribed to {self.params.image_topic} with '
-                               f'{reliability.name} reliability')
-
-    def match_publisher_qos(self) -> None:
-        """input_reliability 'auto': reliable unless a best-effort publisher appears."""
-        wanted = wanted_reliability(self, self.params.image_topic)
-        if wanted is not None and wanted != self.image_reliability:
-            self._subscribe_images(wanted)
 
     def _drop(self, what: str, exc: Exception) -> None:
         """A message dropped (bad input) or one that failed unexpectedly: counted, warned
@@ -178,7 +157,7 @@ class CameraLaneDetectorNode(Node):
     def publish_diagnostics(self) -> None:
         with self.lock:
             counters = dict(self.pipeline.counters)
-        status = self.stats.status(counters, getattr(self.image_reliability, 'name', ''),
+        status = self.stats.status(counters, getattr(self.images.reliability, 'name', ''),
                                    self.get_fully_qualified_name())
         self.diag_pub.publish(DiagnosticArray(
             header=FAMILY.header(self.get_clock().now().nanoseconds, ''), status=[status]))

@@ -21,7 +21,7 @@ from nav_msgs.msg import Odometry
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.event_handler import QoSMessageLostInfo, SubscriptionEventCallbacks
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
 from fhld_ros.detectors import make_detector
@@ -32,7 +32,7 @@ from fhld_ros.ros.declare import declare_params
 from fhld_ros.ros.diagnostics import NodeStats
 from fhld_ros.ros.executor import run_node
 from fhld_ros.ros.odometry_wait import InputSilence, LateSweeps
-from fhld_ros.ros.shell import create_housekeeping, create_outputs, wanted_reliability
+from fhld_ros.ros.shell import SensorInput, create_housekeeping, create_outputs
 from msg_adapters.family import rclpy_family
 
 WARN_THROTTLE_SEC = 5.0
@@ -83,11 +83,10 @@ class LaneDetectorNode(Node):
         # mutually exclusive group the timer would stay ready while its callback runs and
         # rclpy's executor would spin on it (measured: ~45 % of a core, detections 2x slower).
         detection = ReentrantCallbackGroup()
-        self.points_sub = None
-        self.points_reliability: ReliabilityPolicy | None = None
-        self._subscribe_points(ReliabilityPolicy.BEST_EFFORT
-                               if p.input_reliability == 'best_effort'
-                               else ReliabilityPolicy.RELIABLE)
+        # keep last 5: clouds one at a time, a reliable reader loses nothing from a bag player
+        self.points = SensorInput(self, PointCloud2, p.points_topic, self.on_cloud, 5,
+                                  self.inputs, lambda info: self.on_lost('clouds', info),
+                                  p.input_reliability)
         # Odometry twice: best effort, so that a pose lost in DDS never holds back the next (a
         # reliable reader delivers in order: with Fast DDS's default 512 kB shared-memory
         # segment, which a 3 MB cloud published after the pose overruns, poses came 0.9-2.9 s
@@ -116,29 +115,12 @@ class LaneDetectorNode(Node):
         self.wake_detection = self.create_guard_condition(self.on_detection_due,
                                                           callback_group=detection)
         create_housekeeping(self, self.publish_diagnostics,
-                            self.match_publisher_qos if p.input_reliability == 'auto' else None,
+                            self.points.match if p.input_reliability == 'auto' else None,
                             self.inputs)
 
-    def _subscribe_points(self, reliability: ReliabilityPolicy) -> None:
-        if self.points_sub is not None:
-            self.destroy_subscription(self.points_sub)
-        # Sensor-data QoS (keep last 5, volatile) with the chosen reliability: a reliable
-        # subscription loses nothing from a bag player, a best-effort one takes drivers.
-        qos = QoSProfile(history=qos_profile_sensor_data.history, depth=5,
-                         durability=qos_profile_sensor_data.durability, reliability=reliability)
-        self.points_sub = self.create_subscription(
-            PointCloud2, self.params.points_topic, self.on_cloud, qos, callback_group=self.inputs,
-            event_callbacks=SubscriptionEventCallbacks(
-                message_lost=lambda info: self.on_lost('clouds', info)))
-        self.points_reliability = reliability
-        self.get_logger().info(f'subscribed to {self.params.points_topic} with '
-                               f'{reliability.name} reliability')
-
-    def match_publisher_qos(self) -> None:
-        """input_reliability 'auto': reliable unless a best-effort publisher appears."""
-        wanted = wanted_reliability(self, self.params.points_topic)
-        if wanted is not None and wanted != self.points_reliability:
-            self._subscribe_points(wanted)
+    @property
+    def points_reliability(self) -> ReliabilityPolicy | None:
+        return self.points.reliability
 
     def _drop(self, what: str, exc: Exception) -> None:
         """A message the pipeline dropped (bad input), or one that failed unexpectedly: counted,
@@ -266,7 +248,7 @@ class LaneDetectorNode(Node):
         if self.expire_waiting():  # the poll runs on ROS time, which may have stopped
             self.wake_detection.trigger()
         status = self.stats.status(self.pipeline.counters,
-                                   getattr(self.points_reliability, 'name', ''),
+                                   getattr(self.points.reliability, 'name', ''),
                                    self.get_fully_qualified_name(),
                                    odometry_stopped=self.said_odometry_stopped)
         self.diag_pub.publish(DiagnosticArray(

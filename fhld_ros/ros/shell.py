@@ -1,17 +1,19 @@
 """What both nodes' shells (lane_detector, camera_lane_detector) build alike: the /lanes,
-ego Path and /diagnostics publishers, the wall-clock housekeeping timers, and the reliability
-'auto' picks for an input topic."""
+ego Path and /diagnostics publishers, the wall-clock housekeeping timers, and the sensor input
+whose reliability input_reliability sets (SensorInput)."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Path
 from rclpy.callback_groups import CallbackGroup, MutuallyExclusiveCallbackGroup
 from rclpy.clock import Clock, ClockType
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.publisher import Publisher
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from visualization_msgs.msg import MarkerArray
 
 from fhld_ros.lane_output import LANE_TOPICS
@@ -50,3 +52,37 @@ def wanted_reliability(node: Node, topic: str) -> ReliabilityPolicy | None:
         return None
     best_effort = any(i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for i in infos)
     return ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE
+
+
+class SensorInput:
+    """A node's sensor subscription: sensor-data QoS (keep last `depth`, volatile) with the
+    reliability input_reliability names; with 'auto' reliable (a bag player loses nothing) until
+    a best-effort publisher such as a driver appears (match, on the housekeeping timer)."""
+
+    def __init__(self, node: Node, msg_type: type, topic: str, callback: Callable[[Any], None],
+                 depth: int, group: CallbackGroup, on_lost: Callable[[Any], None],
+                 input_reliability: str) -> None:
+        self.node, self.msg_type, self.topic, self.callback = node, msg_type, topic, callback
+        self.depth, self.group, self.on_lost = depth, group, on_lost
+        self.subscription = None
+        self.reliability: ReliabilityPolicy | None = None
+        self.subscribe(ReliabilityPolicy.BEST_EFFORT if input_reliability == 'best_effort'
+                       else ReliabilityPolicy.RELIABLE)
+
+    def subscribe(self, reliability: ReliabilityPolicy) -> None:
+        if self.subscription is not None:
+            self.node.destroy_subscription(self.subscription)
+        qos = QoSProfile(history=qos_profile_sensor_data.history, depth=self.depth,
+                         durability=qos_profile_sensor_data.durability, reliability=reliability)
+        self.subscription = self.node.create_subscription(
+            self.msg_type, self.topic, self.callback, qos, callback_group=self.group,
+            event_callbacks=SubscriptionEventCallbacks(message_lost=self.on_lost))
+        self.reliability = reliability
+        self.node.get_logger().info(f'subscribed to {self.topic} with {reliability.name} '
+                                    'reliability')
+
+    def match(self) -> None:
+        """input_reliability 'auto': reliable unless a best-effort publisher appears."""
+        wanted = wanted_reliability(self.node, self.topic)
+        if wanted is not None and wanted != self.reliability:
+            self.subscribe(wanted)
