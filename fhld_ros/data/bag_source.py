@@ -11,7 +11,7 @@ before its stamp, brought into the window frame and cut to the window square as 
 GT is (samples.lanes_in_window). Windows before the first label, or in another frame than the
 labels (sweeps the odometry did not cover), are skipped and counted. A bag without /odom gives
 single sweeps in the cloud frame, as the node does without odometry (its labels must be in
-that frame then).
+that frame then), one window every `stride` sweeps from the first.
 
 The windows are stored as simulator shards (cache.pack_samples, WINDOWS_PER_SHARD each) in a
 folder per bag beside the simulator cache, ``<parent of data.train_cache>/bags/<bag name>-<key>``;
@@ -174,8 +174,11 @@ def bag_samples(bag: LabelledBag, settings: CacheSettings, stats: Counter | None
     accumulate_sec, max_sweeps = accumulation(settings.sweeps_per_sample)
     params = DetectorParams(size_px=settings.size_px, resolution_m=settings.resolution_m,
                             accumulate_sec=accumulate_sec, max_sweeps=max_sweeps)
-    ends = set(window_ends(counts.get(POINTS, 0), settings.sweeps_per_sample, settings.stride))
-    pipeline = _WindowTaker(params, settings.intensity_encoding, counts.get(ODOM, 0) > 0, ends)
+    sweeps, odometry = counts.get(POINTS, 0), counts.get(ODOM, 0) > 0
+    # without odometry every window is one sweep (as in the node), so each sweep is one
+    ends = set(window_ends(sweeps, settings.sweeps_per_sample, settings.stride) if odometry
+               else range(0, sweeps, settings.stride))
+    pipeline = _WindowTaker(params, settings.intensity_encoding, odometry, ends)
     topics = [POINTS] + ([ODOM] if ODOM in counts else [])
     mismatch: set[str] = set()
 

@@ -30,6 +30,8 @@ from typing import Any
 
 import numpy as np
 
+from fhld_ros.bagio import BagWriter
+from fhld_ros.data.bag_source import LANES_GT, MARKER_ARRAY, POINTS, TOPIC_TYPES
 from fhld_ros.data.samples import scale_intensity
 from fhld_ros.detectors import make_detector
 from fhld_ros.errors import ConfigError
@@ -38,6 +40,7 @@ from fhld_ros.importing.pcd import XYZI_DTYPE
 from fhld_ros.parameters import DetectorParams
 from fhld_ros.pipeline import LaneDetector, LanePipeline
 from msg_adapters.family import rosbags_family
+from msg_adapters.lanes import lanes_to_marker_array_cdr
 from msg_adapters.pointcloud2 import create_cloud
 
 REPO = Path(__file__).resolve().parents[2]
@@ -167,6 +170,32 @@ def sweep_cloud(points: np.ndarray, gain: float, stamp_ns: int = 0,
     family = rosbags_family()
     return create_cloud(family.cls('sensor_msgs/msg/PointCloud2'),
                         family.header(stamp_ns, frame_id), scale_intensity(points, gain))
+
+
+def write_labelled_bags(directory: Path, out: Path, names: list[str],
+                        labels_path: Path = LABELS) -> list[Path]:
+    """One labelled bag per named sweep (data.bags of a training YAML): its cloud on /points
+    and its labelled lines on /lanes_gt, both in the sensor frame at one stamp, no /odom (so
+    the sweep is a window of its own, as in the node without odometry). Names are label-file
+    names; a name not labelled is a ConfigError. Existing bags are refused (BagWriter)."""
+    scans = {scan.file: scan for scan in load_labels(labels_path)}
+    unknown = sorted(set(names) - set(scans))
+    if unknown:
+        raise ConfigError(f'not in {labels_path}: {", ".join(unknown)} '
+                          f'(labelled: {", ".join(sorted(scans))})')
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name in names:
+        scan, stamp = scans[name], 1_700_000_000 * 10**9
+        path = out / Path(name).name.split('.')[0]
+        lines = [line.points for line in scan.lines]
+        with BagWriter(path) as bag:
+            bag.write(POINTS, TOPIC_TYPES[POINTS], stamp,
+                      sweep_cloud(read_sweep(directory / scan.file), 1.0, stamp))
+            bag.write(LANES_GT, MARKER_ARRAY, stamp, lanes_to_marker_array_cdr(
+                stamp, 'lidar', lines, [1.0] * len(lines), list(range(1, len(lines) + 1))))
+        written.append(path)
+    return written
 
 
 def detect_sweep(params: DetectorParams, detector: LaneDetector, points: np.ndarray,
@@ -307,6 +336,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--checkpoint', help='FHLD weights (default: the shipped checkpoint)')
     parser.add_argument('--labels', type=Path, default=LABELS, help='label file (JSON)')
     parser.add_argument('--json', action='store_true', help='print one JSON object last')
+    parser.add_argument('--write-bags', type=Path, metavar='OUT',
+                        help='instead of scoring: write OUT/<sweep>/, a labelled training bag '
+                        'per sweep named by --scans (data.bags of a training YAML)')
+    parser.add_argument('--scans', nargs='+', default=[], metavar='FILE',
+                        help='label-file names of the sweeps for --write-bags')
 
 
 def run(args: argparse.Namespace) -> int:
@@ -314,6 +348,13 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f'{args.directory} is not a directory')
     if any(not gain > 0 for gain in args.gains):
         raise ConfigError('gains must be > 0')
+    if args.write_bags is not None:
+        if not args.scans:
+            raise ConfigError('--write-bags needs --scans')
+        for path in write_labelled_bags(args.directory, args.write_bags, args.scans,
+                                        args.labels):
+            print(f'wrote {path}')
+        return 0
     params = dataclasses.replace(DetectorParams(), detector=args.detector,
                                  checkpoint=args.checkpoint or '')
     scores = evaluate(args.directory, params, tuple(args.gains), args.labels)

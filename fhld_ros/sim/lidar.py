@@ -25,6 +25,11 @@ _VLP32C = (-25.0, -15.639, -11.31, -8.843, -7.254, -6.148, -5.333, -4.667, -4.0,
 # HDL-64E: upper block +2 .. -8.33 at 1/3 deg, lower block -8.83 .. -24.33 at 1/2 deg
 _HDL64 = tuple(np.round(np.concatenate([2.0 - np.arange(32) / 3.0,
                                         -8.83 - 0.5 * np.arange(32)]), 3))
+# Hesai Pandar64: 0.167 deg apart from +1.86 to -6.06, sparse above and below (the real
+# PJLab sweeps' ground rings fall on these angles to 0.01 deg)
+_PANDAR64 = (14.882, 11.032, 8.059, 5.057, 3.04, 2.028) + tuple(
+    np.round(1.86 - np.arange(48) * (7.921 / 47), 3)) + (
+    -7.063, -8.059, -9.06, -9.885, -11.032, -12.006, -12.974, -13.93, -18.889, -24.897)
 
 
 @dataclass(frozen=True)
@@ -71,9 +76,15 @@ SENSORS: dict[str, SensorPreset] = {p.name: p for p in (
     # as a dense grid clipped to its field of view; its non-repetitive pattern is not modelled.
     SensorPreset('forward70', _uniform(-38.6, 38.6, 64), 2048, 'velodyne', 'u8', 190, 60,
                  0.02, 2e-4, 0.05, azimuth_fov_deg=70.4),
+    # Real sensors of the development sweeps: the Hesai Pandar64 (PJLab) and nuScenes' roof
+    # HDL-32E at 1.84 m, whose uncalibrated lasers read whole rings 2-3 x brighter.
+    SensorPreset('pandar64', _PANDAR64, 1800, 'velodyne', 'u8', 200, 60, 0.02, 2e-4, 0.1),
+    SensorPreset('hdl32e-nuscenes', _uniform(-30.67, 10.67, 32), 1085, 'velodyne', 'u8', 70,
+                 40, 0.02, 2e-4, 0.3, mount_z=1.84),
 )}
-# Spinning sensors: the presets the training cache and the test set cycle through.
-SPINNING = tuple(name for name, preset in SENSORS.items() if preset.azimuth_fov_deg >= 360.0)
+# The presets the test set and `sensors: all` cycle through, fixed so that the test set stays
+# the same windows when presets are added.
+SPINNING = ('vlp16', 'vlp32c', 'hdl32e', 'hdl64e', 'os1-32', 'os1-64', 'os1-128', 'os2-128')
 DEFAULT_SENSOR = 'os1-64'
 
 
