@@ -107,3 +107,19 @@ def test_motion_distortion_puts_each_column_in_its_own_frame() -> None:
     assert np.median(np.abs(world[ground, 2] - sim.scene.surface.height(s, d))) < 0.01
     shift = np.linalg.norm(world - naive, axis=1)  # motion within the sweep
     assert 0.5 < np.median(shift) < 2.0 and shift.max() < 3.1  # speed <= 30 m/s
+
+
+def test_real_sensor_presets_follow_the_development_sweeps() -> None:
+    """Pandar64: the angle set the PJLab sweeps' ground rings fall on (0.167 deg apart from
+    +1.86 to -6.06); nuScenes' HDL-32E at 1.84 m with a wide per-laser gain spread. Neither is
+    in the test set's sensors."""
+    p64 = np.array(SENSORS['pandar64'].elevations_deg)
+    assert p64.size == 64 and p64.max() == 14.882 and p64.min() == -24.897
+    dense = p64[(p64 <= 1.87) & (p64 >= -6.07)]
+    assert dense.size == 48 and np.allclose(np.diff(dense), -0.1685, atol=2e-3)
+    nusc = SENSORS['hdl32e-nuscenes']
+    assert nusc.beams == 32 and nusc.mount_z == 1.84
+    assert nusc.gain_sigma > SENSORS['hdl32e'].gain_sigma
+    assert not {'pandar64', 'hdl32e-nuscenes'} & set(ALL_SENSORS)
+    for name in ('pandar64', 'hdl32e-nuscenes'):
+        assert len(Simulator(5, sweeps=1, sensor=name).sweep(0).points) > 10000

@@ -227,3 +227,27 @@ def test_bad_bag_entries_are_one_clear_error(caches, tmp_path, capsys):
         assert fhld(['train', '--config', str(cfg)]) == 2, message
         err = capsys.readouterr().err.strip()
         assert message in err and len(err.splitlines()) == 1, err
+
+
+def test_a_labelled_real_sweep_is_one_training_window(tmp_path):
+    """fhld realscans --write-bags: a sweep and its hand labels as a bag without /odom, which
+    gives one window per sweep in the sensor frame with the labelled lines as GT."""
+    from fhld_ros.evaluation.real_scans import write_labelled_bags
+    rng = np.random.default_rng(0)
+    sweep = np.column_stack([rng.uniform(-3, 3, (500, 2)), np.full(500, -1.7),
+                             rng.uniform(0, 0.3, 500)]).astype('<f4')
+    (tmp_path / 'scan_0.bin').write_bytes(sweep.tobytes())
+    line = [[-3.0, 1.0, -1.7], [3.0, 1.0, -1.7]]
+    labels = tmp_path / 'labels.json'
+    labels.write_text(json.dumps({'scans': [{'file': 'scan_0.bin', 'sensor': 'test', 'lines': [
+        {'id': 'left', 'kind': 'solid', 'points': line}]}]}))
+    [bag] = write_labelled_bags(tmp_path, tmp_path / 'bags', ['scan_0.bin'], labels)
+    stats = Counter()
+    [window] = bag_samples(LabelledBag(str(bag)), TINY, stats)
+    assert stats == {'sweeps': 1, 'windows': 1}
+    np.testing.assert_allclose(window.lanes[0][[0, -1]], line, atol=1e-6)
+    np.testing.assert_allclose(window.window_to_odom, np.eye(4))  # the sensor frame
+    with pytest.raises(ValueError, match='not in .*labels.json: other.bin'):
+        write_labelled_bags(tmp_path, tmp_path / 'more', ['other.bin'], labels)
+    with pytest.raises(ValueError, match='exists'):  # never over a bag already there
+        write_labelled_bags(tmp_path, tmp_path / 'bags', ['scan_0.bin'], labels)

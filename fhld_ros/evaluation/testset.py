@@ -19,6 +19,10 @@ Scores: the FHLD point metric and the ONCE-3DLanes lane metric, counts summed ov
 the point metric's F1 also per sensor preset and per topology setting; lanes published and
 false lanes (published, not matched by the ONCE metric) per window.
 
+`--validation` takes the seeds from VALIDATION_SEED_BASE instead (unseen by training and by
+the test set): what design choices and checkpoints are chosen on, so the test set stays a
+measurement.
+
 `--condition` makes the same seeds' windows under one real-sensor variation (CONDITIONS,
 docs/testset_conditions.md): intensity gain or units, worn paint, no markings, single sweeps
 without odometry. The report records it and the median paint / asphalt contrast of the
@@ -61,6 +65,7 @@ from fhld_ros.sim.simulator import Simulator
 
 DETECTORS = ('classical', *FHLD_VARIANTS)
 SEEDS = 56
+VALIDATION_SEED_BASE = 2_000_000
 WINDOWS_PER_SEED = 4
 WORN_PAINT_CONTRAST = 2.5  # worn paint: reflectance at most 2.5 x the asphalt, no beads
 
@@ -96,6 +101,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--detectors', nargs='+', choices=DETECTORS, default=list(DETECTORS))
     parser.add_argument('--seeds', type=int, default=SEEDS, help='test seeds (default 56)')
     parser.add_argument('--windows-per-seed', type=int, default=WINDOWS_PER_SEED)
+    parser.add_argument('--validation', action='store_true',
+                        help=f'validation seeds from {VALIDATION_SEED_BASE:,} instead of the '
+                             'test set\'s: for choosing settings and checkpoints')
     parser.add_argument('--checkpoint', type=Path, help='FHLD weights (default: shipped)')
     parser.add_argument('--score-threshold', type=float,
                         default=DetectorParams().score_threshold, help='(default: the node\'s)')
@@ -162,7 +170,8 @@ def run(args: argparse.Namespace) -> int:
                             score_threshold=args.score_threshold)
     if set(FHLD_VARIANTS) & set(args.detectors):
         load_fhld_model(params)  # an unusable checkpoint fails here, not in every worker
-    seeds = list(range(TEST_SEED_BASE, TEST_SEED_BASE + args.seeds))
+    base = VALIDATION_SEED_BASE if args.validation else TEST_SEED_BASE
+    seeds = list(range(base, base + args.seeds))
     init = (args.detectors, params)
     start = time.monotonic()
     with ProcessPoolExecutor(args.workers, mp_context=get_context('spawn'), initializer=_init,
@@ -172,6 +181,7 @@ def run(args: argparse.Namespace) -> int:
         results = [f.result() for f in tqdm(futures, desc='test set', unit='seed',
                                             file=sys.stderr)]
     report = summarise(results, args.detectors, args.condition)
+    report['split'] = 'validation' if args.validation else 'test'
     report['seconds'] = round(time.monotonic() - start, 1)
     print_table(report)
     if args.json:
@@ -219,7 +229,8 @@ def _point_f1_by(results: list[dict], detectors: list[str], key: str) -> dict:
 def print_table(report: dict) -> None:
     condition = report.get('condition', 'none')
     contrast = report.get('paint_contrast')
-    print(f'held-out test set: {report["windows"]} windows from {report["seeds"]} seeds, '
+    split = 'validation set' if report.get('split') == 'validation' else 'held-out test set'
+    print(f'{split}: {report["windows"]} windows from {report["seeds"]} seeds, '
           f'{len(report["sensors"])} sensors, {len(report["topologies"])} topology settings; '
           f'condition: {condition}'
           + (f' ({CONDITIONS[condition].help})' if condition in CONDITIONS else '')
