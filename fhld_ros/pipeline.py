@@ -32,14 +32,14 @@ from typing import Any, Protocol
 import numpy as np
 
 from fhld_ros.bev import BevSpec
-from fhld_ros.intensity import ABSOLUTE
+from fhld_ros.intensity import ABSOLUTE, CONTRAST_RINGS
 from fhld_ros.lane_output import LaneIdTracker, LaneOutput, ego_lane_bounds
 from fhld_ros.parameters import DetectorParams
 from fhld_ros.pose_buffer import TIME_BACK_NS, PoseBuffer
 from fhld_ros.rolling_grid import BevWindow, RollingBevGrid
 from msg_adapters.family import stamp_to_ns
 from msg_adapters.odometry import euler_to_matrix, odometry_to_matrix
-from msg_adapters.pointcloud2 import read_xyzi
+from msg_adapters.pointcloud2 import read_xyzi, read_xyzir
 
 # sweeps held back by their odometry that still get their own window, at most (the newest of
 # them): each costs the newest sweep one more detection of waiting
@@ -186,7 +186,10 @@ class LanePipeline:
         frame = str(msg.header.frame_id)
         if not frame:  # it would become the output frame without odometry
             raise ValueError('cloud has an empty frame_id')
-        xyz, intensity = read_xyzi(msg, max_points=self.params.max_points)
+        if self.grid.encode_intensity.encoding == CONTRAST_RINGS:  # it tells lasers apart
+            xyz, intensity, ring = read_xyzir(msg, max_points=self.params.max_points)
+        else:
+            (xyz, intensity), ring = read_xyzi(msg, max_points=self.params.max_points), None
         decoded = time.perf_counter()
         stamp_ns = stamp_to_ns(msg.header.stamp)
         if self.newest_seen_ns is not None and stamp_ns < self.newest_seen_ns - TIME_BACK_NS:
@@ -197,7 +200,7 @@ class LanePipeline:
         self._saw(stamp_ns)
         # in stamp order, so the grid (which resets when time goes back) sees them in order
         index = bisect.bisect([s[0] for s in self.pending], stamp_ns)
-        self.pending.insert(index, (stamp_ns, frame, xyz, intensity))
+        self.pending.insert(index, (stamp_ns, frame, (xyz, intensity, ring)))
         let_in = self._release()
         done = time.perf_counter()
         return Intake(stamp_ns, let_in, timings_ms={'decode_ms': (decoded - start) * 1e3,
@@ -215,12 +218,12 @@ class LanePipeline:
         reach_ns = round(self.params.odom_extrapolate_sec * 1e9)
         let_in: list[int] = []
         while reach_ns and self.pending and self.pending[0][0] <= until_stamp_ns:
-            stamp_ns, frame, xyz, intensity = self.pending[0]
+            stamp_ns, frame, cloud = self.pending[0]
             pose = self.sensor_pose(stamp_ns, frame, reach_ns)
             if pose is None:
                 break
             self.pending.popleft()
-            self._insert(stamp_ns, frame, xyz, intensity, pose)
+            self._insert(stamp_ns, frame, cloud, pose)
             self.counters['clouds_extrapolated'] += 1
             let_in.append(stamp_ns)
         self._hold_back(let_in)
@@ -254,7 +257,7 @@ class LanePipeline:
         has waited long enough (or is one of the `force` oldest). Returns their stamps."""
         inserted: list[int] = []
         while self.pending:
-            stamp_ns, frame, xyz, intensity = self.pending[0]
+            stamp_ns, frame, cloud = self.pending[0]
             pose = self._pose_for(stamp_ns, frame, wait_in_gaps)
             if pose is _WAIT:
                 # stopped: no full wait, but odometry coming back just after this sweep's
@@ -270,7 +273,7 @@ class LanePipeline:
                 self.odometry_stopped = True
                 pose = None
             self.pending.popleft()
-            self._insert(stamp_ns, frame, xyz, intensity, pose)
+            self._insert(stamp_ns, frame, cloud, pose)
             inserted.append(stamp_ns)
         self._hold_back(inserted)
         return inserted
@@ -281,9 +284,10 @@ class LanePipeline:
         if self.output_frame == self.odom_frame:
             self.held_back.extend(inserted[:-1])
 
-    def _insert(self, stamp_ns: int, frame: str, xyz: np.ndarray, intensity: np.ndarray,
-                pose: np.ndarray | None) -> None:
-        """Into the grid in the odometry frame, or alone in the cloud frame when pose is None."""
+    def _insert(self, stamp_ns: int, frame: str, cloud: tuple, pose: np.ndarray | None) -> None:
+        """The cloud (xyz, intensity, ring or None) into the grid in the odometry frame, or
+        alone in the cloud frame when pose is None."""
+        xyz, intensity, ring = cloud
         if pose is None and self.uses_odometry:
             self.counters['clouds_without_odometry'] += 1
         output_frame = frame if pose is None else self.odom_frame
@@ -295,7 +299,7 @@ class LanePipeline:
                 self.ids.reset()
         scale = self.params.intensity_scale or None
         if self.grid.insert(stamp_ns, xyz, intensity, np.eye(4) if pose is None else pose,
-                            scale):
+                            scale, ring=ring):
             self.counters['resets'] += 1
             self.ids.reset()
         self.grid_frame = self.output_frame = output_frame

@@ -122,13 +122,14 @@ class RollingBevGrid:
         return self._sweeps[-1].stamp_ns if self._sweeps else None
 
     def insert(self, stamp_ns: int, xyz_sensor: np.ndarray, intensity_raw: np.ndarray,
-               sensor_to_output: np.ndarray, intensity_scale: float | None = None) -> bool:
+               sensor_to_output: np.ndarray, intensity_scale: float | None = None,
+               ring: np.ndarray | None = None) -> bool:
         """Add one sweep: sensor-frame points and the sensor pose at the sweep stamp.
 
         Use the identity pose without odometry. Points with a non-finite coordinate or
         intensity are dropped. intensity_scale fixes the absolute encoding's full scale (the
-        contrast encoding needs none). Returns True if the grid was reset (stamp older than
-        newest).
+        contrast encoding needs none); ring, the points' ring field, tells contrast_rings
+        the lasers apart. Returns True if the grid was reset (stamp older than newest).
         """
         stamp_ns = int(stamp_ns)
         pose = np.asarray(sensor_to_output, dtype=np.float64)
@@ -146,7 +147,9 @@ class RollingBevGrid:
         if not finite.all():
             xyz, raw = xyz[finite], raw[finite]
             x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-        intensity01 = self.encode_intensity(xyz, raw, intensity_scale)
+            if ring is not None and np.shape(ring) == finite.shape:  # else left to the encoder
+                ring = np.asarray(ring)[finite]
+        intensity01 = self.encode_intensity(xyz, raw, intensity_scale, ring=ring)
         z_ref = self._z_ref_for(pose[2, 3])
         # rotate into output-frame axes (elementwise, as in pixel_coords)
         rot = pose[:3, :3].astype(np.float32)

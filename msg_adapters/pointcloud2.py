@@ -144,6 +144,19 @@ def read_xyzi(msg: Any, *, max_points: int | None = DEFAULT_MAX_POINTS
     are no-returns of organised drivers and are dropped like NaN ones. ValueError names a
     malformed cloud or one of more than max_points points (None = no bound).
     """
+    xyz, intensity, _ = _read_returns(msg, max_points, with_ring=False)
+    return xyz, intensity
+
+
+def read_xyzir(msg: Any, *, max_points: int | None = DEFAULT_MAX_POINTS
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """read_xyzi and the same points' `ring` field (laser index, any numeric type, as
+    stored), or None where the cloud has none or one of count > 1."""
+    return _read_returns(msg, max_points, with_ring=True)
+
+
+def _read_returns(msg: Any, max_points: int | None, with_ring: bool
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     global _warned_no_intensity
     grid = _grid_view(msg, max_points)
     names = grid.dtype.names or ()
@@ -170,14 +183,18 @@ def read_xyzi(msg: Any, *, max_points: int | None = DEFAULT_MAX_POINTS
         intensity = np.zeros(count, dtype=np.float32)
     else:
         intensity = _native(grid[intensity_name]).reshape(-1).astype(np.float32)
+    ring = None
+    if with_ring and 'ring' in names and grid.dtype.fields['ring'][0].subdtype is None:
+        ring = _native(grid['ring']).reshape(-1)
     # L1 norm through BLAS (a row sum over 3 columns is slow in numpy); NaN/inf propagate and
     # only the all-zero no-return point has norm 0.
     norm1 = np.abs(xyz) @ np.ones(3, dtype=np.float32)
     keep = np.isfinite(norm1) & (norm1 > 0)
     if keep.all():
-        return xyz, intensity
+        return xyz, intensity, None if ring is None else np.array(ring)
     index = np.flatnonzero(keep)  # take() with indices is ~5x faster than a boolean mask here
-    return xyz.take(index, axis=0), intensity.take(index)
+    return (xyz.take(index, axis=0), intensity.take(index),
+            None if ring is None else ring.take(index))
 
 
 def point_fields(point_field_cls: type, dtype: np.dtype) -> list:

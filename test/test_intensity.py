@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from numpy.lib import recfunctions
 
 from fhld_ros.data.cache import TEST_SEED_BASE, CacheSettings, build_cache, scenario_for_seed
 from fhld_ros.data.samples import training_samples
@@ -17,11 +18,26 @@ from fhld_ros.intensity import (
     IntensityEncoder,
     ground_level,
     ground_mask,
+    normalize_intensity,
+)
+from fhld_ros.intensity_rings import (
+    RING_GAIN_RANGE,
+    RING_GAP_DEG,
+    RING_MAX_WIDTH_DEG,
+    RING_MIN_POINTS,
+    RING_MIN_RINGS,
+    RING_MIN_SECTORS,
+    RING_MIN_SHARE,
+    RING_SAMPLE,
+    RING_SECTORS,
     ring_gains,
 )
 from fhld_ros.parameters import DetectorParams
 from fhld_ros.pipeline import LanePipeline
+from fhld_ros.rolling_grid import RollingBevGrid
 from fhld_ros.sim.simulator import Simulator
+from msg_adapters.family import rosbags_family
+from msg_adapters.pointcloud2 import create_cloud, read_xyzi, read_xyzir
 
 
 def road_scene(rng: np.random.Generator, mount_z: float = 1.9, pitch_deg: float = 0.0
@@ -267,3 +283,152 @@ def test_laser_gain_spread_is_off_by_default_and_leaves_the_drive():
     assert 0.3 < np.mean([d is not None for d in drawn]) < 0.7
     assert 'laser_gain_sigma' not in scenario_for_seed(TEST_SEED_BASE, laser)
     assert 'laser_gain_sigma' not in scenario_for_seed(0, CacheSettings(sensor_variation=True))
+
+
+def _reference_ring_gains(xyz_sensor, ground_xyz, ground_values):
+    """ring_gains as first written, in plain numpy (sort, bincount, per-row sort, searchsorted):
+    the compiled one must give the same float32 gains."""
+    v = np.asarray(ground_values, dtype=np.float64).reshape(-1)
+    step = max(1, v.size // RING_SAMPLE)
+    g = np.asarray(ground_xyz, dtype=np.float32).reshape(-1, 3)[::step]
+    v = v[::step]
+    g, v = g[np.isfinite(v)], v[np.isfinite(v)]
+    if v.size < RING_MIN_POINTS * RING_MIN_RINGS:
+        return None
+    el = np.degrees(np.arctan2(g[:, 2], np.hypot(g[:, 0], g[:, 1])))
+    order = np.argsort(el)
+    el, v, g = el[order], v[order], g[order]
+    split = np.flatnonzero(np.diff(el) > RING_GAP_DEG) + 1
+    starts, ends = np.concatenate([[0], split]), np.concatenate([split, [el.size]])
+    count = ends - starts
+    big = count[count >= RING_MIN_POINTS]
+    ok = ((count >= max(RING_MIN_POINTS, RING_MIN_SHARE * np.median(big) if big.size else 0))
+          & (el[ends - 1] - el[starts] <= RING_MAX_WIDTH_DEG))
+    if ok.sum() < RING_MIN_RINGS:
+        return None
+    rings = int(ok.sum())
+    member = np.repeat(np.where(ok, np.cumsum(ok) - 1, -1), count)
+    keep = member >= 0
+    azimuth = np.arctan2(g[keep, 1], g[keep, 0])
+    sector = ((azimuth + np.pi) * (RING_SECTORS / (2 * np.pi))).astype(np.int64) % RING_SECTORS
+    cell = member[keep] * RING_SECTORS + sector
+    n = np.bincount(cell, minlength=rings * RING_SECTORS)
+    total = np.bincount(cell, v[keep], rings * RING_SECTORS)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        log_mean = np.log(total / n).reshape(rings, RING_SECTORS)
+    log_mean[(n < 2).reshape(rings, RING_SECTORS) | ~np.isfinite(log_mean)] = np.nan
+    ratio = log_mean[1:] - log_mean[:-1]
+    seen = np.isfinite(ratio)
+    matched = seen.sum(axis=1) >= RING_MIN_SECTORS
+    if matched.sum() < RING_MIN_RINGS - 1:
+        return None
+    ratio[~seen] = np.inf
+    ratio.sort(axis=1)
+    counts, rows = seen.sum(axis=1), np.arange(rings - 1)
+    lo_mid, hi_mid = np.maximum(counts - 1, 0) // 2, counts // 2
+    step = 0.5 * (ratio[rows, lo_mid] + ratio[rows, np.minimum(hi_mid, RING_SECTORS - 1)])
+    profile = np.concatenate([[0.0], np.cumsum(np.where(matched, step, 0.0))])
+    centre = 0.5 * (el[starts] + el[ends - 1])[ok]
+    fit = np.ones(rings, dtype=bool)
+    for _ in range(2):
+        smooth = np.polyval(np.polyfit(centre[fit], profile[fit], 2), centre)
+        off = np.abs(profile - smooth)
+        fit = off <= max(3.0 * np.median(off), 1e-6)
+    gain = np.ones(starts.size + 2, dtype=np.float32)
+    gain[1:-1][ok] = np.clip(np.exp(-(profile - smooth)), *RING_GAIN_RANGE)
+    lo, hi = el[starts], el[ends - 1]
+    gaps = lo[1:] - hi[:-1]
+    edges = np.concatenate([[lo[0] - gaps[0] / 2], (lo[1:] + hi[:-1]) / 2,
+                            [hi[-1] + gaps[-1] / 2]])
+    tan_edges = np.tan(np.radians(edges)).astype(np.float32)
+    x, y, z = np.asarray(xyz_sensor, dtype=np.float32).reshape(-1, 3).T
+    with np.errstate(divide='ignore', invalid='ignore'):
+        t = z / np.sqrt(x * x + y * y)
+    k = np.searchsorted(tan_edges, t, 'right')
+    k[~np.isfinite(t)] = np.where(z[~np.isfinite(t)] < 0, 0, tan_edges.size)
+    return gain[k]
+
+
+def _reference_encoding(xyz, raw):
+    """contrast_rings from _reference_ring_gains, as the encoder first did it."""
+    ground = ground_mask(xyz)
+    level = ground_level(raw[ground])
+    gains = _reference_ring_gains(xyz, xyz[ground], raw[ground])
+    return normalize_intensity(raw.astype(np.float32) * gains, level / GROUND_LEVEL)
+
+
+@pytest.mark.parametrize('sensor,sigma', [('hdl64e', 0.3), ('os1-64', None), ('vlp16', 0.3)])
+def test_compiled_ring_gains_equal_the_numpy_reference(sensor, sigma):
+    xyz, raw, _ = _sim_sweep(sensor, sigma, seed=2_000_780)
+    assert len(raw) < 65536 * 2  # one ground sample step: the reference takes every return
+    ground = ground_mask(xyz)
+    reference = _reference_ring_gains(xyz, xyz[ground], raw[ground])
+    assert reference is not None and len(np.unique(reference)) > 6
+    np.testing.assert_array_equal(ring_gains(xyz, xyz[ground], raw[ground]), reference)
+    encoder = IntensityEncoder(CONTRAST_RINGS)
+    np.testing.assert_array_equal(encoder(xyz, raw), _reference_encoding(xyz, raw))
+    assert encoder.rings_found
+
+
+@pytest.mark.parametrize('sensor', ['hdl64e', 'hdl32e', 'os1-64'])
+def test_ring_field_takes_out_per_laser_gain_at_least_as_well(sensor):
+    xyz, calibrated, ring = _sim_sweep(sensor, 0.0)
+    _, spread, _ = _sim_sweep(sensor, 0.3)
+    ground = ground_mask(xyz) & (np.hypot(xyz[:, 0], xyz[:, 1]) < 12.8)
+
+    def error(with_ring: bool) -> float:
+        """median |log| error on the ground against the calibrated sweep, encoded alike"""
+        ref = IntensityEncoder(CONTRAST_RINGS)(xyz, calibrated, ring=ring if with_ring else None)
+        encoder = IntensityEncoder(CONTRAST_RINGS)
+        out = encoder(xyz, spread, ring=ring if with_ring else None)
+        assert encoder.rings_found
+        both = (out[ground] > 0) & (ref[ground] > 0)
+        return float(np.median(np.abs(np.log(out[ground][both] / ref[ground][both]))))
+    by_ring, by_elevation = error(True), error(False)
+    assert by_ring < 0.12 and by_ring <= by_elevation + 0.01, (by_ring, by_elevation)
+    # one gain per laser, and the ring path is not the elevation path in disguise
+    gains = ring_gains(xyz, xyz[ground], spread[ground], ring, ring[ground])
+    assert all(np.unique(gains[ring == k]).size == 1 for k in np.unique(ring))
+    assert not np.array_equal(gains, ring_gains(xyz, xyz[ground], spread[ground]))
+
+
+def test_a_malformed_ring_field_falls_back_to_elevation_rings():
+    xyz, raw, ring = _sim_sweep('hdl32e', 0.3)
+    encoder = IntensityEncoder(CONTRAST_RINGS)
+    by_elevation = encoder(xyz, raw)
+    fractional = ring.astype(np.float32) + 0.5
+    not_finite = ring.astype(np.float64)
+    not_finite[7] = np.nan
+    negative = -1 - ring.astype(np.int32)
+    for bad in (ring[:-1], ring.reshape(1, -1)[:, :10], fractional, not_finite, negative,
+                np.zeros_like(ring), np.full(len(ring), 70000), np.array(['a'] * len(ring))):
+        np.testing.assert_array_equal(encoder(xyz, raw, ring=bad), by_elevation)
+        assert encoder.rings_found
+    as_float = encoder(xyz, raw, ring=ring.astype(np.float32))  # nuScenes: float ring ids
+    np.testing.assert_array_equal(as_float, encoder(xyz, raw, ring=ring))
+    assert not np.array_equal(as_float, by_elevation)
+
+
+def test_the_ring_field_goes_from_the_cloud_into_the_encoder():
+    sim = Simulator(2_000_781, sweeps=1, sensor='hdl32e', laser_gain_sigma=0.3)
+    pts = next(sim.sweeps()).points.copy()
+    pts['x'][:3] = 0.0  # no-returns: dropped with their ring
+    pts['y'][:3] = pts['z'][:3] = 0.0
+    pts['z'][5] = np.nan
+    family = rosbags_family()
+    msg = create_cloud(family.cls('sensor_msgs/msg/PointCloud2'), family.header(1, 'lidar'), pts)
+    xyz, raw, ring = read_xyzir(msg)
+    plain = read_xyzi(msg)
+    np.testing.assert_array_equal(plain[0], xyz)
+    np.testing.assert_array_equal(ring, np.delete(pts['ring'], [0, 1, 2, 5]))
+    without = recfunctions.drop_fields(pts, 'ring', usemask=False)
+    assert read_xyzir(create_cloud(family.cls('sensor_msgs/msg/PointCloud2'),
+                                   family.header(1, 'lidar'), without))[2] is None
+    # the grid drops a non-finite intensity with its ring; the encoder then sees the rest
+    raw[9] = np.inf
+    grid = RollingBevGrid(intensity_encoding=CONTRAST_RINGS)
+    grid.insert(0, xyz, raw, np.eye(4), ring=ring)
+    keep = np.arange(len(raw)) != 9
+    expected = IntensityEncoder(CONTRAST_RINGS)(xyz[keep], raw[keep], ring=ring[keep])
+    np.testing.assert_array_equal(grid._sweeps[-1].intensity01, expected)
+    assert not np.array_equal(expected, IntensityEncoder(CONTRAST_RINGS)(xyz[keep], raw[keep]))
