@@ -35,6 +35,7 @@ from fhld_ros.data.bag_source import LANES_GT, MARKER_ARRAY, POINTS, TOPIC_TYPES
 from fhld_ros.data.samples import scale_intensity
 from fhld_ros.detectors import make_detector
 from fhld_ros.errors import ConfigError
+from fhld_ros.evaluation import real_scan_diagnosis
 from fhld_ros.importing.kitti import read_bin
 from fhld_ros.importing.pcd import XYZI_DTYPE
 from fhld_ros.parameters import DetectorParams
@@ -267,9 +268,9 @@ def score_scan(labels: ScanLabels, lanes: list[np.ndarray], gain: float = 1.0,
         confidences=[float(c) for c in confidences], lanes=lanes)
 
 
-def evaluate(directory: Path, params: DetectorParams, gains: tuple[float, ...] = GAINS,
-             labels_path: Path = LABELS) -> list[ScanScore]:
-    """Every labelled scan found in `directory` at every gain (one detector load)."""
+def present_sweeps(directory: Path, labels_path: Path = LABELS
+                   ) -> tuple[list[ScanLabels], dict[str, np.ndarray]]:
+    """The labelled scans found in `directory` and their sweeps (read_sweep), by file."""
     try:
         all_labels = load_labels(labels_path)
     except (OSError, ValueError, KeyError, TypeError) as exc:
@@ -278,8 +279,15 @@ def evaluate(directory: Path, params: DetectorParams, gains: tuple[float, ...] =
     if not present:
         raise ConfigError(f'{directory} holds none of the labelled scans '
                           f'({", ".join(scan.file for scan in all_labels)})')
-    sweeps = {scan.file: xyzi(read_sweep(directory / scan.file))  # ConfigError if bad
-              for scan in present}
+    return present, {scan.file: read_sweep(directory / scan.file)  # ConfigError if bad
+                     for scan in present}
+
+
+def evaluate(directory: Path, params: DetectorParams, gains: tuple[float, ...] = GAINS,
+             labels_path: Path = LABELS) -> list[ScanScore]:
+    """Every labelled scan found in `directory` at every gain (one detector load)."""
+    present, read = present_sweeps(directory, labels_path)
+    sweeps = {name: xyzi(sweep) for name, sweep in read.items()}
     detector = make_detector(params)
     half = params.size_px * params.resolution_m / 2
     scores = []
@@ -341,6 +349,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         'per sweep named by --scans (data.bags of a training YAML)')
     parser.add_argument('--scans', nargs='+', default=[], metavar='FILE',
                         help='label-file names of the sweeps for --write-bags')
+    parser.add_argument('--explain', action='store_true', help='instead of scoring: per '
+                        'labelled line at gain 1, why it is found or missed (real_scan_diagnosis)')
+    parser.add_argument('--explain-figure', type=Path, metavar='PNG',
+                        help='with --explain: top views of the missed lines, one PNG')
 
 
 def run(args: argparse.Namespace) -> int:
@@ -357,6 +369,9 @@ def run(args: argparse.Namespace) -> int:
         return 0
     params = dataclasses.replace(DetectorParams(), detector=args.detector,
                                  checkpoint=args.checkpoint or '')
+    if args.explain or args.explain_figure is not None:
+        return real_scan_diagnosis.run(args, params, *present_sweeps(args.directory, args.labels),
+                                       real_scan_diagnosis.Scoring(coverage, detect_sweep))
     scores = evaluate(args.directory, params, tuple(args.gains), args.labels)
     print_table(scores, args.detector)
     if args.json:
