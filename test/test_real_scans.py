@@ -72,7 +72,8 @@ def test_label_file_is_well_formed(labels: list[ScanLabels]) -> None:
 
 def xyzi(path) -> np.ndarray:
     """(N, 4) float32 x y z intensity of a sweep in the sensor frame, read as the scorer does."""
-    return real_scans.xyzi(real_scans.read_sweep(path)).view('<f4').reshape(-1, 4)
+    sweep = real_scans.read_sweep(path)
+    return np.column_stack([sweep[n] for n in ('x', 'y', 'z', 'intensity')]).astype('<f4')
 
 
 def _bright_share(points: np.ndarray, line: np.ndarray, shift: float,
@@ -164,8 +165,13 @@ def test_read_sweep_layouts_by_name(tmp_path) -> None:
     assert one.dtype.names == ('x', 'y', 'z', 'intensity', 'ring')
     assert acc.dtype.names == ('x', 'y', 'z', 'intensity', 'dt')
     for sweep in (one, acc):  # float16 keeps -1.8 to 1e-3
-        assert np.allclose(real_scans.xyzi(sweep).view('<f4'), [5, -2, -1.8, 40], atol=1e-3)
+        packed = real_scans.cloud_points(sweep)
+        assert np.allclose([packed[n][0] for n in ('x', 'y', 'z', 'intensity')],
+                           [5, -2, -1.8, 40], atol=1e-3)
     assert one['ring'][0] == 7.0 and acc['dt'][0] == 7.0
+    # the cloud a driver sends: the ring as uint16 where the file has one, no dt
+    assert real_scans.cloud_points(one).dtype.names == ('x', 'y', 'z', 'intensity', 'ring')
+    assert real_scans.cloud_points(acc).dtype.names == ('x', 'y', 'z', 'intensity')
     assert np.allclose(kitti.view('<f4'), [2, 5, -1.8, 40])  # KITTI: already x forward
     (tmp_path / 'bad.pcd.bin').write_bytes(b'\0' * 24)
     with pytest.raises(ConfigError, match='not a multiple of 20'):

@@ -37,7 +37,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from fhld_ros.detectors import classical_detector, fhld_detections, with_evidence
-from fhld_ros.importing.pcd import XYZI_DTYPE
+from fhld_ros.importing.pcd import cloud_points
 from fhld_ros.intensity import ABSOLUTE, CONTRAST, IntensityEncoder, ground_mask
 from fhld_ros.parameters import DetectorParams
 from fhld_ros.rolling_grid import BevWindow
@@ -209,14 +209,6 @@ def measure_line(xyz: np.ndarray, raw: np.ndarray, encodings: Sequence[np.ndarra
             'ring_spread': float(np.std(medians)) if medians.size >= 2 else None}
 
 
-def pack_xyzi(sweep: np.ndarray) -> np.ndarray:
-    """The sweep's x y z intensity, packed (XYZI_DTYPE): what the node's cloud carries."""
-    out = np.empty(len(sweep), dtype=XYZI_DTYPE)
-    for name in XYZI_DTYPE.names:
-        out[name] = sweep[name]
-    return out
-
-
 def verdict(found: bool, best: float | None, threshold: float) -> str:
     """One word from the facts (VERDICTS)."""
     if found:
@@ -267,7 +259,7 @@ def diagnose_sweep(scan: Any, sweep: np.ndarray, params: DetectorParams, capture
     half = params.size_px * params.resolution_m / 2
     capture.window = None
     scoring.detect_sweep(dataclasses.replace(params, score_threshold=0.0), capture,
-                         pack_xyzi(sweep))
+                         cloud_points(sweep))
     window, (lanes, confidences) = capture.window, capture.output
     assert window is not None, 'the pipeline did not run the detector'
     shown = published(capture, params)

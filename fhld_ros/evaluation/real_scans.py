@@ -37,7 +37,7 @@ from fhld_ros.detectors import make_detector
 from fhld_ros.errors import ConfigError
 from fhld_ros.evaluation import real_scan_diagnosis
 from fhld_ros.importing.kitti import read_bin
-from fhld_ros.importing.pcd import XYZI_DTYPE
+from fhld_ros.importing.pcd import XYZI_DTYPE, cloud_points
 from fhld_ros.parameters import DetectorParams
 from fhld_ros.pipeline import LaneDetector, LanePipeline
 from msg_adapters.family import rosbags_family
@@ -86,14 +86,6 @@ def read_sweep(path: str | Path) -> np.ndarray:
     out = np.empty(len(columns), dtype=np.dtype(XYZI_DTYPE.descr + [(extra, '<f4')]))
     out['x'], out['y'] = (columns[:, 1], -columns[:, 0]) if lidar_top else columns[:, :2].T
     out['z'], out['intensity'], out[extra] = columns[:, 2:].T
-    return out
-
-
-def xyzi(points: np.ndarray) -> np.ndarray:
-    """The x y z intensity fields alone, packed (XYZI_DTYPE): what the scorer and cloud use."""
-    out = np.empty(len(points), dtype=XYZI_DTYPE)
-    for name in XYZI_DTYPE.names:
-        out[name] = points[name]
     return out
 
 
@@ -167,7 +159,7 @@ def load_labels(path: Path = LABELS) -> list[ScanLabels]:
 
 def sweep_cloud(points: np.ndarray, gain: float, stamp_ns: int = 0,
                 frame_id: str = 'lidar') -> Any:
-    """A rosbags PointCloud2 of the sweep (importing.pcd.XYZI_DTYPE), intensity times gain."""
+    """A rosbags PointCloud2 of the sweep (importing.pcd.cloud_points), intensity times gain."""
     family = rosbags_family()
     return create_cloud(family.cls('sensor_msgs/msg/PointCloud2'),
                         family.header(stamp_ns, frame_id), scale_intensity(points, gain))
@@ -192,7 +184,7 @@ def write_labelled_bags(directory: Path, out: Path, names: list[str],
         lines = [line.points for line in scan.lines]
         with BagWriter(path) as bag:
             bag.write(POINTS, TOPIC_TYPES[POINTS], stamp,
-                      sweep_cloud(read_sweep(directory / scan.file), 1.0, stamp))
+                      sweep_cloud(cloud_points(read_sweep(directory / scan.file)), 1.0, stamp))
             bag.write(LANES_GT, MARKER_ARRAY, stamp, lanes_to_marker_array_cdr(
                 stamp, 'lidar', lines, [1.0] * len(lines), list(range(1, len(lines) + 1))))
         written.append(path)
@@ -287,7 +279,7 @@ def evaluate(directory: Path, params: DetectorParams, gains: tuple[float, ...] =
              labels_path: Path = LABELS) -> list[ScanScore]:
     """Every labelled scan found in `directory` at every gain (one detector load)."""
     present, read = present_sweeps(directory, labels_path)
-    sweeps = {name: xyzi(sweep) for name, sweep in read.items()}
+    sweeps = {name: cloud_points(sweep) for name, sweep in read.items()}
     detector = make_detector(params)
     half = params.size_px * params.resolution_m / 2
     scores = []

@@ -20,6 +20,7 @@ from fhld_ros.errors import ConfigError
 
 INTENSITY_NAMES = ('intensity', 'reflectivity', 'i', 'I')  # first present wins
 XYZI_DTYPE = np.dtype([('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('intensity', '<f4')])
+XYZIR_DTYPE = np.dtype(XYZI_DTYPE.descr + [('ring', '<u2')])  # the Velodyne driver's ring
 DATA_KINDS = ('ascii', 'binary', 'binary_compressed')
 IDENTITY_VIEWPOINT = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)  # tx ty tz qw qx qy qz
 _SIZES = {'F': (4, 8), 'I': (1, 2, 4, 8), 'U': (1, 2, 4, 8)}
@@ -297,4 +298,14 @@ def to_xyzi(cloud: PcdCloud, path: str | Path = '<pcd>') -> np.ndarray:
     out = np.empty(len(cloud.points), dtype=XYZI_DTYPE)
     for target, name in zip(XYZI_DTYPE.names, (*'xyz', source)):
         out[target] = cloud.points[name]
+    return out
+
+
+def cloud_points(sweep: np.ndarray) -> np.ndarray:
+    """A sweep's x y z intensity, packed (XYZI_DTYPE), and its laser index as a uint16 `ring`
+    (XYZIR_DTYPE) when it has one: the fields a driver's PointCloud2 carries."""
+    dtype = XYZIR_DTYPE if 'ring' in (sweep.dtype.names or ()) else XYZI_DTYPE
+    out = np.empty(len(sweep), dtype=dtype)
+    for name in dtype.names:
+        out[name] = sweep[name]
     return out
