@@ -32,14 +32,13 @@ from typing import Any, Protocol
 import numpy as np
 
 from fhld_ros.bev import BevSpec
-from fhld_ros.intensity import ABSOLUTE, CONTRAST_RINGS
+from fhld_ros.intensity import ABSOLUTE
 from fhld_ros.lane_output import LaneIdTracker, LaneOutput, ego_lane_bounds
 from fhld_ros.parameters import DetectorParams
 from fhld_ros.pose_buffer import TIME_BACK_NS, PoseBuffer
 from fhld_ros.rolling_grid import BevWindow, RollingBevGrid
 from msg_adapters.family import stamp_to_ns
 from msg_adapters.odometry import euler_to_matrix, odometry_to_matrix
-from msg_adapters.pointcloud2 import read_xyzi, read_xyzir
 
 # sweeps held back by their odometry that still get their own window, at most (the newest of
 # them): each costs the newest sweep one more detection of waiting
@@ -186,10 +185,7 @@ class LanePipeline:
         frame = str(msg.header.frame_id)
         if not frame:  # it would become the output frame without odometry
             raise ValueError('cloud has an empty frame_id')
-        if self.grid.encode_intensity.encoding == CONTRAST_RINGS:  # it tells lasers apart
-            xyz, intensity, ring = read_xyzir(msg, max_points=self.params.max_points)
-        else:
-            (xyz, intensity), ring = read_xyzi(msg, max_points=self.params.max_points), None
+        xyz, intensity, ring = self.grid.read_cloud(msg, self.params.max_points)
         decoded = time.perf_counter()
         stamp_ns = stamp_to_ns(msg.header.stamp)
         if self.newest_seen_ns is not None and stamp_ns < self.newest_seen_ns - TIME_BACK_NS:

@@ -9,6 +9,7 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 
@@ -21,7 +22,8 @@ from fhld_ros.bev import (
     window_affine,
     yaw_frame,
 )
-from fhld_ros.intensity import ABSOLUTE, IntensityEncoder
+from fhld_ros.intensity import ABSOLUTE, CONTRAST_RINGS, IntensityEncoder
+from msg_adapters.pointcloud2 import DEFAULT_MAX_POINTS, read_xyzi, read_xyzir
 
 
 @dataclass(frozen=True)
@@ -120,6 +122,15 @@ class RollingBevGrid:
     @property
     def newest_stamp_ns(self) -> int | None:
         return self._sweeps[-1].stamp_ns if self._sweeps else None
+
+    def read_cloud(self, msg: Any, max_points: int | None = DEFAULT_MAX_POINTS
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """A PointCloud2's xyz, raw intensity and, where this grid's encoding tells lasers
+        apart (contrast_rings), its `ring` field (None when it has none): what insert takes.
+        ValueError names what is malformed."""
+        if self.encode_intensity.encoding == CONTRAST_RINGS:
+            return read_xyzir(msg, max_points=max_points)
+        return (*read_xyzi(msg, max_points=max_points), None)
 
     def insert(self, stamp_ns: int, xyz_sensor: np.ndarray, intensity_raw: np.ndarray,
                sensor_to_output: np.ndarray, intensity_scale: float | None = None,

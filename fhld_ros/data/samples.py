@@ -1,8 +1,9 @@
 """Training samples straight from the simulator, through the node's own input path.
 
-Each sweep is encoded as a PointCloud2 (msg_adapters.pointcloud2.create_cloud), decoded with
-read_xyzi and inserted into a RollingBevGrid with the /odom pose, exactly as the node does;
-the window's raster is the sample, and the GT lines are cut to the window square.
+Each sweep is encoded as a PointCloud2 (msg_adapters.pointcloud2.create_cloud), decoded by the
+grid (RollingBevGrid.read_cloud: the ring field too where the encoding tells lasers apart) and
+inserted with the /odom pose, exactly as the node does; the window's raster is the sample, and
+the GT lines are cut to the window square.
 """
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from fhld_ros.sim.gt_lines import clip_to_square
 from fhld_ros.sim.scene import ASPHALT, PAINT
 from fhld_ros.sim.simulator import Simulator
 from msg_adapters.family import rosbags_family
-from msg_adapters.pointcloud2 import INTENSITY_FIELDS, create_cloud, read_xyzi
+from msg_adapters.pointcloud2 import INTENSITY_FIELDS, create_cloud
 
 
 @dataclass
@@ -136,8 +137,9 @@ def training_samples(sim: Simulator, n: int | None = None, sweeps_per_sample: in
         points = scale_intensity(sweep.points, intensity_gain)
         msg = create_cloud(cloud_cls, fam.header(sweep.stamp_ns, sim.frame_id), points,
                            height=sweep.height)
-        xyz, intensity = read_xyzi(msg)
-        grid.insert(sweep.stamp_ns, xyz, intensity, sweep.odom_pose if odometry else np.eye(4))
+        xyz, intensity, ring = grid.read_cloud(msg)
+        grid.insert(sweep.stamp_ns, xyz, intensity, sweep.odom_pose if odometry else np.eye(4),
+                    ring=ring)
         if not newest:
             continue
         window = grid.window()

@@ -3,8 +3,8 @@
 The test set is fixed: seeds TEST_SEED_BASE .. +55 (unseen by training, which uses seeds from
 0), 4 windows each = 224 windows of 25.6 m, and with the cache's scenario rule these 56 seeds
 cover every sensor preset x topology pair. Each window goes through the node's own path
-(PointCloud2 -> read_xyzi -> RollingBevGrid); the detectors see the identical BevWindow, with
-the FHLD checkpoint's intensity encoding when an FHLD row is asked for:
+(PointCloud2 -> RollingBevGrid.read_cloud -> insert); the detectors see the identical
+BevWindow, with the FHLD checkpoint's intensity encoding when an FHLD row is asked for:
 
 * `classical`   rule-based baseline on the window's accumulated points
 * `fhld`        the FHLD model's final output (local branch points, heights refined from the
