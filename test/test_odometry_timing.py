@@ -63,9 +63,9 @@ class Run:
         self.frames: dict[int, str] = {}  # detected sweep stamp -> output frame
         insert = self.pipeline.grid.insert
 
-        def spy(stamp_ns, xyz, intensity, pose, scale=None):
+        def spy(stamp_ns, xyz, intensity, pose, scale=None, **options):
             self.poses[stamp_ns] = pose
-            return insert(stamp_ns, xyz, intensity, pose, scale)
+            return insert(stamp_ns, xyz, intensity, pose, scale, **options)
         self.pipeline.grid.insert = spy
 
     def feed(self, timeline, finish: bool = True) -> Run:

@@ -6,6 +6,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -30,6 +31,7 @@ from fhld_ros.data.cache import (
 from fhld_ros.data.samples import training_samples
 from fhld_ros.data.variation import SHARES
 from fhld_ros.errors import ConfigError
+from fhld_ros.evaluation import real_scans
 from fhld_ros.model.checkpoint import load_checkpoint, save_checkpoint
 from fhld_ros.model.detector import FhldDetector
 from fhld_ros.sim.simulator import Simulator
@@ -156,7 +158,15 @@ def test_experiments_are_apart_from_the_shipped_recipe_and_the_starting_points()
 
 
 @pytest.mark.parametrize('path', TRAINING_CONFIGS, ids=lambda p: p.name)
-def test_every_training_config_loads(path):
+def test_every_training_config_loads(path, tmp_path, monkeypatch):
+    real_bags = sorted(set(re.findall(r'out/realbags/(\w+)', path.read_text())))
+    if real_bags:  # hand-labelled real sweeps as bags: `fhld realscans --write-bags`
+        if not real_scans.DEFAULT_DIR.is_dir():
+            pytest.skip(f'{path.name} trains on real sweeps in ../shared/real_scans (absent)')
+        monkeypatch.chdir(tmp_path)
+        names = [f'{stem}.bin' for stem in real_bags]
+        real_scans.write_labelled_bags(real_scans.DEFAULT_DIR, tmp_path / 'out' / 'realbags',
+                                       names)
     cfg = load_config(path)
     # the shipped file changes with each release: a recipe names the file it starts from
     assert 'fhld_ros/checkpoints' not in cfg.train.teacher + cfg.train.init
