@@ -79,6 +79,15 @@ def ring_table(x: np.ndarray, y: np.ndarray, z: np.ndarray, values: np.ndarray,
     return RingTable(gain, tan_edges, tuple(cells)) if separable else None
 
 
+def elevation_ring_ids(xyz_sensor: np.ndarray) -> np.ndarray:
+    """(N,) the ring of each return as ring_table forms rings without a ring field: sorted
+    elevation angles split at gaps over RING_GAP_DEG (ids in ascending elevation; -1: not
+    finite)."""
+    p = np.asarray(xyz_sensor, dtype=np.float32).reshape(-1, 3)
+    tilt = np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))
+    return _elevation_clusters(tilt, _DEGREES, np.float32(RING_GAP_DEG))[3]
+
+
 def _usable(count: np.ndarray) -> np.ndarray:
     """Rings with enough ground returns for a level. One with a small share of the others'
     lost its dark ground to range (only paint and bright ground still return): biased."""

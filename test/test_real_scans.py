@@ -15,6 +15,7 @@ import pytest
 from fhld_ros.errors import ConfigError
 from fhld_ros.evaluation import real_scan_diagnosis, real_scans
 from fhld_ros.evaluation.real_scans import LabelledLine, ScanLabels, score_scan
+from fhld_ros.intensity_rings import elevation_ring_ids
 from fhld_ros.parameters import DetectorParams
 
 needs_scans = pytest.mark.skipif(not real_scans.DEFAULT_DIR.is_dir(),
@@ -266,7 +267,7 @@ def test_explain_measures_a_constructed_stripe(tmp_path, capsys: pytest.CaptureF
 def test_diagnosis_helpers_on_constructed_points() -> None:
     # rings: elevation clusters; medians per ring; distances beside a polyline
     xyz = np.array([[10.0, 0, -1.0], [10.0, 0.1, -1.0], [5.0, 0, -1.0], [-5.0, 0, -1.0]])
-    ids = real_scan_diagnosis.ring_ids(xyz)
+    ids = elevation_ring_ids(xyz)  # the rings the diagnosis counts
     assert ids[0] == ids[1] and ids[2] == ids[3] and ids[0] != ids[2]
     medians = real_scan_diagnosis.group_medians(np.array([0, 0, 0, 1, 1, 2]),
                                                 np.array([3.0, 1.0, 2.0, 4.0, 6.0, 9.0]), 2)

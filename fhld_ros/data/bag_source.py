@@ -140,8 +140,8 @@ class _WindowTaker(LanePipeline):
         self.ends = ends
         self.taken: list[tuple[int, BevWindow, str]] = []  # (sweep, window, its frame)
 
-    def _insert(self, stamp_ns: int, frame: str, *sweep_and_pose: Any) -> None:
-        super()._insert(stamp_ns, frame, *sweep_and_pose)
+    def _insert(self, stamp_ns: int, frame: str, cloud: tuple, pose: np.ndarray | None) -> None:
+        super()._insert(stamp_ns, frame, cloud, pose)
         sweep = self.counters['clouds'] - 1
         if sweep in self.ends:
             self.taken.append((sweep, self.grid.window(), self.output_frame or frame))

@@ -9,8 +9,8 @@ threshold and each check do to the best candidate on a line. Per line:
 
 * found: >= 50 % of the line within 0.3 m of a published lane (the scorer's coverage);
 * returns / rings: ground returns within NEAR_M (top view) of the line, and how many lasers they
-  come from (the sweep's ring column, else elevation clusters split at RING_GAP_DEG, as the
-  contrast_rings encoding forms rings);
+  come from (the sweep's ring column, else elevation clusters as the contrast_rings encoding
+  forms rings: intensity_rings.elevation_ring_ids);
 * contrast: median encoded intensity of those returns / that of the ground BESIDE_M to either
   side, under the checkpoint's encoding (and under `contrast` when that differs);
 * ring spread: std across rings of each ring's median log raw intensity beside the line;
@@ -39,6 +39,7 @@ from matplotlib.figure import Figure
 from fhld_ros.detectors import classical_detector, fhld_detections, with_evidence
 from fhld_ros.importing.pcd import cloud_points
 from fhld_ros.intensity import ABSOLUTE, CONTRAST, IntensityEncoder, ground_mask
+from fhld_ros.intensity_rings import elevation_ring_ids
 from fhld_ros.parameters import DetectorParams
 from fhld_ros.rolling_grid import BevWindow
 
@@ -49,7 +50,6 @@ BESIDE_M = (0.4, 1.0)  # the road to either side, clear of the paint
 # ground: this close in height to the label (its z is the road's), so curb faces and tops, cars
 # and vegetation beside the line do not count as road
 LEVEL_M = 0.1
-RING_GAP_DEG = 0.05  # one laser spans < 0.01 degrees, neighbouring ones >= 0.125 apart
 MIN_RING_RETURNS = 5  # a ring's median beside the line needs this many returns
 CROP_M = (16.0, 8.0)  # the figure's top-view crop around a line, along x and y
 VERDICTS = ('found', 'paint-check', 'low-score', 'no-candidate')
@@ -147,16 +147,6 @@ def near_line(xyz: np.ndarray, polyline: np.ndarray, reach: float,
     return index[keep], dist[keep], beside[keep]
 
 
-def ring_ids(xyz: np.ndarray) -> np.ndarray:
-    """(N,) elevation cluster per return: sorted elevation angles split at gaps over
-    RING_GAP_DEG (ids only mean something within one call)."""
-    elevation = np.degrees(np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1])))
-    order = np.argsort(elevation)
-    ids = np.empty(len(xyz), dtype=np.int64)
-    ids[order] = np.cumsum(np.r_[0, np.diff(elevation[order]) > RING_GAP_DEG])
-    return ids
-
-
 def sweep_rings(xyz: np.ndarray, ring: np.ndarray | None,
                 polylines: Sequence[np.ndarray]) -> np.ndarray:
     """(N,) laser index per return: the ring column, else elevation clusters of the sweep's
@@ -170,7 +160,7 @@ def sweep_rings(xyz: np.ndarray, ring: np.ndarray | None,
     for polyline in polylines:
         member[near_line(xyz, polyline, BESIDE_M[1])[0]] = True
     ids = np.full(len(xyz), -1, dtype=np.int64)
-    ids[member] = ring_ids(xyz[member])
+    ids[member] = elevation_ring_ids(xyz[member])
     return ids
 
 
@@ -263,12 +253,14 @@ def diagnose_sweep(scan: Any, sweep: np.ndarray, params: DetectorParams, capture
     window, (lanes, confidences) = capture.window, capture.output
     assert window is not None, 'the pipeline did not run the detector'
     shown = published(capture, params)
-    xyz = np.stack([sweep['x'], sweep['y'], sweep['z']], axis=1).astype(np.float64)
+    xyz32 = np.stack([sweep['x'], sweep['y'], sweep['z']], axis=1).astype(np.float32)
+    xyz = xyz32.astype(np.float64)
     raw = sweep['intensity'].astype(np.float32)  # as the node reads it
-    encodings = [IntensityEncoder(capture.intensity_encoding)(xyz.astype(np.float32), raw)]
-    if capture.intensity_encoding != CONTRAST:
-        encodings.append(IntensityEncoder(CONTRAST)(xyz.astype(np.float32), raw))
     ring = sweep['ring'] if 'ring' in (sweep.dtype.names or ()) else None
+    # encoded as the node encodes this sweep: its ring field too, where the encoding uses one
+    encodings = [IntensityEncoder(capture.intensity_encoding)(xyz32, raw, ring=ring)]
+    if capture.intensity_encoding != CONTRAST:
+        encodings.append(IntensityEncoder(CONTRAST)(xyz32, raw))
     rings = sweep_rings(xyz, ring, [line.points for line in scan.lines])
     lines = []
     for line in scan.lines:
