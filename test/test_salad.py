@@ -12,8 +12,8 @@ from scipy.spatial import cKDTree
 from fhld_ros.errors import ConfigError
 from fhld_ros.salad.augment import flip, zoom
 from fhld_ros.salad.checkpoint import SaladCheckpointError, load_salad, save_salad
-from fhld_ros.salad.config import SaladConfig
-from fhld_ros.salad.decode import decode
+from fhld_ros.salad.config import STRIDE, SaladConfig
+from fhld_ros.salad.decode import decode, extend_to_row_edge
 from fhld_ros.salad.detector import SaladDetector
 from fhld_ros.salad.evaluate import score
 from fhld_ros.salad.losses import SaladCriterion
@@ -96,6 +96,21 @@ def test_perfect_maps_decode_to_the_lanes_they_were_made_from():
         assert lane[0, 2] < 10 and lane[-1, 2] > 50  # near to far, up to the range
 
 
+def test_a_lane_continues_to_the_far_edge_of_its_top_cell_row_and_no_further():
+    cfg = SaladConfig(camera=CAMERA)
+    z = np.arange(5.0, 30.01, 0.5)
+    lane = np.column_stack([1.75 + 0.02 * z, np.full_like(z, 1.6), z])
+    top_row = np.floor((CAMERA.focal * 1.6 / 30.0 + CAMERA.cy + 0.5) / STRIDE)
+    far_edge_z = CAMERA.focal * 1.6 / (top_row * STRIDE - 0.5 - CAMERA.cy)
+    extended = extend_to_row_edge(lane, top_row, cfg)
+    assert 30.0 < extended[-1, 2] <= far_edge_z < extended[-1, 2] + 0.5
+    np.testing.assert_allclose(extended[:, 0], 1.75 + 0.02 * extended[:, 2])
+    np.testing.assert_array_equal(extended[:len(lane)], lane)
+    # a lane seen up to the horizon's row reaches the decoder's range, not the horizon
+    near_horizon = extend_to_row_edge(lane, np.floor(CAMERA.cy / STRIDE), cfg)
+    assert near_horizon[-1, 2] == pytest.approx(cfg.max_depth_m)
+
+
 def test_dense_depth_fills_between_the_lanes_as_the_ground_does():
     targets = lane_targets(_road(), CAMERA)
     rows, cols = np.nonzero(targets.depth_mask & (targets.seg == 0))
@@ -167,8 +182,22 @@ def test_detector_and_scoring_run_on_any_camera(tmp_path):
     assert len(lanes) == len(scores) and set(detector.timings_ms) == {
         'warp_ms', 'model_ms', 'decode_ms'}
     rows = score(detector, [CameraLaneSample(image, k, _road(), 'grey')])
-    assert set(rows) == {'tau_0.15', 'tau_0.30', 'tau_0.50', 'official'}
+    assert set(rows) == {'tau_0.15', 'tau_0.30', 'tau_0.50', 'official', 'by_range'}
     assert rows['tau_0.30']['gt'] == 4 and rows['tau_0.30']['images'] == 1
+
+
+def test_the_error_by_range_is_where_the_lanes_are_off():
+    gt = _road()
+    off_far = [lane + np.where(lane[:, 2:] > 40.0, [0.4, 0.0, 0.0], 0.0) for lane in gt]
+    image = np.zeros((CAMERA.height, CAMERA.width, 3), dtype=np.uint8)
+    rows = score(lambda image, k: (off_far, np.ones(4)),
+                 [CameraLaneSample(image, CAMERA.intrinsics, gt, 'shifted')])
+    by_range = rows['by_range']
+    assert [by_range[b]['median_m'] for b in ('0-10m', '10-20m', '20-30m', '30-40m')] == \
+        pytest.approx([0.0] * 4, abs=0.01)
+    assert by_range['50-60m']['median_m'] == pytest.approx(0.4, abs=0.01)
+    # the lanes still pass tau_CD 0.3 (the far third moves their mean): the F1 hides it
+    assert rows['tau_0.30']['F1'] == 100.0
 
 
 def test_config_values_are_checked_where_declared():

@@ -270,18 +270,24 @@ def unilateral_chamfer(gt_lane: np.ndarray, pred_lane: np.ndarray,
     return float(dist.mean())
 
 
+def once_pairs(pred_lanes: Lanes, gt_lanes: Lanes, half_size: float,
+               iou_thresh: float = ONCE_IOU_THRESH) -> list[tuple[int, int]]:
+    """(GT index, prediction index) of the pairs the paper's metric compares: Hungarian
+    assignment on 1 - top-view IoU, pairs below iou_thresh dropped."""
+    if not pred_lanes or not gt_lanes:
+        return []
+    iou = _iou_matrix([topview_mask(g, half_size) for g in gt_lanes],
+                      [topview_mask(p, half_size) for p in pred_lanes])
+    return [(int(gi), int(pi)) for gi, pi in zip(*linear_sum_assignment(1.0 - iou))
+            if iou[gi, pi] >= iou_thresh]
+
+
 def once_counts(pred_lanes: Lanes, gt_lanes: Lanes, half_size: float,
                 iou_thresh: float = ONCE_IOU_THRESH,
                 cd_thresh: float = ONCE_CD_THRESH) -> LaneCounts:
     """ONCE-3DLanes counts of one frame as the paper defines the metric (see module doc)."""
     counts = LaneCounts(n_pred=len(pred_lanes), n_gt=len(gt_lanes))
-    if not pred_lanes or not gt_lanes:
-        return counts
-    iou = _iou_matrix([topview_mask(g, half_size) for g in gt_lanes],
-                      [topview_mask(p, half_size) for p in pred_lanes])
-    for gi, pi in zip(*linear_sum_assignment(1.0 - iou)):
-        if iou[gi, pi] < iou_thresh:
-            continue
+    for gi, pi in once_pairs(pred_lanes, gt_lanes, half_size, iou_thresh):
         cd = unilateral_chamfer(gt_lanes[gi], pred_lanes[pi])
         if cd <= cd_thresh:
             counts.tp += 1

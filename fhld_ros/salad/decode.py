@@ -2,6 +2,11 @@
 by the row shift and scale, back-projected with the virtual camera's intrinsics, grouped into
 lanes and fitted.
 
+A lane point stands for its run of cells, so a fitted lane ends at the mean depth of its
+topmost cell row; near the horizon one cell row spans tens of metres (45-68 m for a camera
+1.5 m up), so each lane is continued on its trend to the far edge of that row, where the image
+still shows it (`extend_to_row_edge`).
+
 Grouping happens in 3D, row by row from the bottom of the image up: each row's runs of lane
 cells are one point each, and a point joins the lane whose lateral position (x, metres) it
 continues. Far away lanes converge in the image and their cells touch, but in 3D they stay
@@ -22,6 +27,7 @@ MIN_POINTS = 4
 MIN_LENGTH_M = 2.0
 SAMPLE_STEP_M = 0.5  # fitted lanes are sampled every this much depth
 MAX_DEGREE = 3
+TAIL_M = 10.0  # a lane is continued on its straight-line trend over its last this many metres
 
 
 def lane_points(prob: np.ndarray, spatial: np.ndarray, cfg: SaladConfig) -> np.ndarray:
@@ -111,6 +117,23 @@ def fit_lane(points: np.ndarray) -> np.ndarray | None:
     return np.column_stack([fx(zs), fy(zs), zs])
 
 
+def extend_to_row_edge(lane: np.ndarray, top_row: float, cfg: SaladConfig) -> np.ndarray:
+    """The lane (N, 3), near to far, continued on its straight trend over the last TAIL_M until
+    it leaves the top edge of its topmost cell row `top_row` in the image, or reaches
+    max_depth_m."""
+    z = lane[:, 2]
+    tail = z >= z[-1] - TAIL_M
+    extra = np.arange(z[-1] + SAMPLE_STEP_M, cfg.max_depth_m + 1e-9, SAMPLE_STEP_M)
+    if tail.sum() < 2 or not len(extra):
+        return lane
+    x = np.polyval(np.polyfit(z[tail], lane[tail, 0], 1), extra)
+    y = np.polyval(np.polyfit(z[tail], lane[tail, 1], 1), extra)
+    cam = cfg.camera
+    inside = cam.focal * y / extra + cam.cy >= top_row * STRIDE - 0.5  # image v, top edge
+    n = len(inside) if inside.all() else int(np.argmin(inside))
+    return np.vstack([lane, np.column_stack([x, y, extra])[:n]])
+
+
 def decode(prob: np.ndarray, spatial: np.ndarray, cfg: SaladConfig
            ) -> tuple[list[np.ndarray], np.ndarray]:
     """Lanes ((N, 3) optical frame, near to far) and their scores (mean cell probability)
@@ -121,6 +144,6 @@ def decode(prob: np.ndarray, spatial: np.ndarray, cfg: SaladConfig
         lane = fit_lane(points[index])
         score = float(points[index, 3].mean())
         if lane is not None and score >= cfg.score_threshold:
-            lanes.append(lane)
+            lanes.append(extend_to_row_edge(lane, points[index, 4].min(), cfg))
             scores.append(score)
     return lanes, np.asarray(scores, dtype=np.float64)

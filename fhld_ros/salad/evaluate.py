@@ -4,7 +4,9 @@ files.
 
 Rows as in the paper's Table 2: F1, precision, recall and the CD error of the true positives
 at tau_CD 0.15, 0.30 and 0.50 m (the paper's definition: top-view IoU >= 0.3, then the
-unilateral chamfer distance), and the released evaluator's figures at 0.30 m ("official").
+unilateral chamfer distance), the released evaluator's figures at 0.30 m ("official"), and the
+error by range ("by_range": over the GT points of every compared pair, the distance to the
+predicted lane, per 10 m of forward distance; where the far range loses it).
 Lanes are compared in a camera-centred top view (metrics.py takes x forward, y left, z up:
 the optical frame turned, not moved).
 """
@@ -17,9 +19,17 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from fhld_ros.errors import ConfigError
-from fhld_ros.evaluation.metrics import LaneCounts, once_counts, once_counts_official
+from fhld_ros.evaluation.metrics import (
+    SAMPLE_STEP,
+    LaneCounts,
+    once_counts,
+    once_counts_official,
+    once_pairs,
+)
+from fhld_ros.geometry import resample_polyline
 from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT
 from fhld_ros.salad.detector import SaladDetector
 from fhld_ros.salad.once_format import read_once
@@ -29,6 +39,8 @@ from fhld_ros.salad.sim_source import salad_seeds, simulated_samples
 
 TAUS = (0.15, 0.30, 0.50)
 HALF_SIZE_M = 60.0  # the top view compared: 60 m ahead, 60 m to each side
+RANGE_EDGES_M = np.arange(0.0, 61.0, 10.0)
+RANGE_STEP_M = 0.1  # GT points this far apart for the error by range
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -36,6 +48,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--drives', type=int, default=10,
                         help='held-out simulated drives (0: none)')
     parser.add_argument('--frames', type=int, default=5, help='images per drive, 1 s apart')
+    parser.add_argument('--validation', action='store_true',
+                        help="SALAD's validation seeds instead of its test seeds (for choosing "
+                             'settings and checkpoints)')
     parser.add_argument('--once', type=Path, metavar='ROOT', help='an ONCE-3DLanes folder')
     parser.add_argument('--once-split', default='val')
     parser.add_argument('--openlane', type=Path, metavar='ROOT', help='an OpenLane folder')
@@ -48,9 +63,11 @@ def optical_to_window(lane: np.ndarray) -> np.ndarray:
 
 
 def score(detector: SaladDetector, samples: Iterable[CameraLaneSample]) -> dict[str, dict]:
-    """Counts summed over the samples, as score rows: 'tau_0.15' ... and 'official'."""
+    """Counts summed over the samples, as score rows: 'tau_0.15' ... and 'official', and the
+    error by range ('by_range')."""
     counts = {tau: LaneCounts() for tau in TAUS}
     official, images = LaneCounts(official=True), 0
+    errors: list[np.ndarray] = []  # (n, 2): GT point's forward distance, error
     for sample in samples:
         lanes, scores = detector(sample.image, sample.intrinsics)
         pred = [optical_to_window(lane) for lane in lanes]
@@ -58,16 +75,37 @@ def score(detector: SaladDetector, samples: Iterable[CameraLaneSample]) -> dict[
         for tau in TAUS:
             counts[tau] = counts[tau] + once_counts(pred, gt, HALF_SIZE_M, cd_thresh=tau)
         official = official + once_counts_official(pred, scores, gt)
+        errors += [_point_errors(gt[g], pred[p]) for g, p in once_pairs(pred, gt, HALF_SIZE_M)]
         images += 1
     rows = {f'tau_{tau:.2f}': c.scores() for tau, c in counts.items()}
     rows['official'] = official.scores()
     for row, c in zip(rows.values(), [*counts.values(), official]):
         row.update(images=images, gt=c.n_gt, pred=c.n_pred)
+    rows['by_range'] = _by_range(np.concatenate(errors) if errors else np.zeros((0, 2)))
     return rows
 
 
-def held_out_drives(drives: int, frames: int) -> Iterator[CameraLaneSample]:
-    for seed in salad_seeds('test', drives):
+def _point_errors(gt: np.ndarray, pred: np.ndarray) -> np.ndarray:
+    """(n, 2): each GT point's forward distance and its 3D distance to the predicted lane."""
+    points = resample_polyline(gt, RANGE_STEP_M)
+    distance, _ = cKDTree(resample_polyline(pred, SAMPLE_STEP)).query(points)
+    return np.column_stack([points[:, 0], distance])
+
+
+def _by_range(errors: np.ndarray) -> dict[str, dict]:
+    band = np.digitize(errors[:, 0], RANGE_EDGES_M) - 1
+    out = {}
+    for i, (lo, hi) in enumerate(zip(RANGE_EDGES_M[:-1], RANGE_EDGES_M[1:])):
+        e = errors[band == i, 1]
+        out[f'{lo:.0f}-{hi:.0f}m'] = {
+            'median_m': float(np.median(e)) if len(e) else float('nan'),
+            'mean_m': float(e.mean()) if len(e) else float('nan'), 'points': int(len(e))}
+    return out
+
+
+def held_out_drives(drives: int, frames: int, split: str = 'test'
+                    ) -> Iterator[CameraLaneSample]:
+    for seed in salad_seeds(split, drives):
         yield from simulated_samples(seed, frames)
 
 
@@ -75,8 +113,12 @@ def _print(name: str, rows: dict[str, dict]) -> None:
     first = next(iter(rows.values()))
     print(f'{name}: {first["images"]} images, {first["gt"]} GT lanes')
     for key, r in rows.items():
-        print(f'  {key:10s} F1 {r["F1"]:5.1f}  P {r["P"]:5.1f}  R {r["R"]:5.1f}  '
-              f'CD {r["CD"]:.3f} m')
+        if key != 'by_range':
+            print(f'  {key:10s} F1 {r["F1"]:5.1f}  P {r["P"]:5.1f}  R {r["R"]:5.1f}  '
+                  f'CD {r["CD"]:.3f} m')
+    print('  error by range (GT points of compared pairs to the prediction), median / mean m:')
+    print('  ' + '  '.join(f'{band} {r["median_m"]:.2f} / {r["mean_m"]:.2f}'
+                           for band, r in rows['by_range'].items()))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -85,7 +127,9 @@ def run(args: argparse.Namespace) -> int:
     detector = SaladDetector(args.checkpoint)
     sources = {}
     if args.drives:
-        sources['simulated'] = held_out_drives(args.drives, args.frames)
+        split = 'val' if args.validation else 'test'
+        sources['validation' if args.validation else 'simulated'] = held_out_drives(
+            args.drives, args.frames, split)
     if args.once:
         sources['once'] = read_once(args.once, args.once_split)
     if args.openlane:

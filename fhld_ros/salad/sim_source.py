@@ -32,8 +32,10 @@ from fhld_ros.sim.simulator import MAX_SWEEPS, Simulator
 
 SALAD_TRAIN_SEED_BASE = 3_000_000
 SALAD_TEST_SEED_BASE = 4_000_000
+SALAD_VALIDATION_SEED_BASE = 5_000_000  # for choosing settings, so the test seeds stay unseen
 SALAD_SEED_SPAN = 1_000_000  # seeds per split: [base, base + span)
-SPLITS = {'train': SALAD_TRAIN_SEED_BASE, 'test': SALAD_TEST_SEED_BASE}
+SPLITS = {'train': SALAD_TRAIN_SEED_BASE, 'test': SALAD_TEST_SEED_BASE,
+          'val': SALAD_VALIDATION_SEED_BASE}
 DEFAULT_SIZE = (960, 540)  # width, height (px)
 FRAME_STRIDE = 10  # sweeps between a drive's frames (1 s at 10 Hz)
 # the camera drawn per seed (randomise=True)
@@ -79,7 +81,7 @@ def camera_for_seed(seed: int, randomise: bool = True) -> CameraDraw:
 
 
 def salad_seeds(split: str, count: int, start: int = 0) -> range:
-    """Seeds start .. start + count - 1 of a split ('train' or 'test')."""
+    """Seeds start .. start + count - 1 of a split ('train', 'test' or 'val')."""
     if split not in SPLITS:
         raise ValueError(f'split must be one of {", ".join(SPLITS)}, got {split!r}')
     if start < 0 or count < 0 or start + count > SALAD_SEED_SPAN:
