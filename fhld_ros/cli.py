@@ -37,6 +37,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
                     'train SALAD, the camera detector, on simulated camera drives'),
     'salad-eval': ('fhld_ros.salad.evaluate',
                    'score SALAD with the ONCE-3DLanes metric on held-out drives / datasets'),
+    'salad-labels2d': ('fhld_ros.commands.salad_labels2d',
+                       "SALAD's lanes as 2D labels of a bag's images (for fhld autolabel)"),
     'salad-real': ('fhld_ros.salad.real_images',
                    'SALAD on the real camera images of the development set (OpenLane scored)'),
 }

@@ -32,11 +32,7 @@ def replay_camera(in_bag: Path, out_bag: Path, params: CameraParams,
     inputs = {'IN_BAG': in_bag}
     check_output(out_bag, overwrite, inputs)  # before the model loads: fail fast
     counts = topic_counts(in_bag)
-    for topic in (image_topic, camera_info_topic):
-        if not counts.get(topic):
-            missing = 'no messages on' if topic in counts else 'no topic'
-            raise ConfigError(f'bag {in_bag} has {missing} {topic} (it has: '
-                              f'{", ".join(sorted(counts)) or "nothing"})')
+    require_topics(in_bag, counts, (image_topic, camera_info_topic))
     pipeline = CameraPipeline(params, load_camera_detector(params.checkpoint,
                                                            params.model_threads))
     lanes_topic = '/' + params.lanes_topic.strip('/')
@@ -63,6 +59,15 @@ def replay_camera(in_bag: Path, out_bag: Path, params: CameraParams,
     return {'images': c['images'] + c['bad_images'], 'dropped': c['bad_images'],
             'skipped': c['images_skipped'], 'bad_camera_info': c['bad_camera_info'],
             'detections': detections}
+
+
+def require_topics(in_bag: Path, counts: dict[str, int], topics: tuple[str, ...]) -> None:
+    """ConfigError naming the first of topics that in_bag (topic -> message count) lacks."""
+    for topic in topics:
+        if not counts.get(topic):
+            missing = 'no messages on' if topic in counts else 'no topic'
+            raise ConfigError(f'bag {in_bag} has {missing} {topic} (it has: '
+                              f'{", ".join(sorted(counts)) or "nothing"})')
 
 
 def stamp_s(msg: object) -> str:
