@@ -94,10 +94,11 @@ def test_the_camera_is_drawn_per_seed_and_deterministic():
     fixed = drive_camera(seeds[0], 1, (320, 180), randomise=False)
     np.testing.assert_allclose(fixed.K, intrinsics(320, 180, HFOV_DEG))
     # the splits apart from each other and from the LiDAR detector's seeds
-    train, test = salad_seeds('train', 10 ** 6), salad_seeds('test', 10 ** 6)
+    train, test, val = (salad_seeds(split, 10 ** 6) for split in ('train', 'test', 'val'))
     assert train.stop <= test.start and train.start >= TEST_SEED_BASE + 10 ** 6
+    assert test.stop <= val.start
     with pytest.raises(ValueError):
-        salad_seeds('val', 1)
+        salad_seeds('validation', 1)
 
 
 def test_simulated_samples_repeat_per_seed():

@@ -48,12 +48,19 @@ WINDOW_SETTINGS = CacheSettings(size_px=800, resolution_m=0.04, sweeps_per_sampl
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--drives', type=int, default=8, help='held-out drives (default 8)')
+    parser.add_argument('--first-drive', type=int, default=0, metavar='K',
+                        help='start at drive K (seed AUTOLABEL_SEED_BASE + K; default 0)')
     parser.add_argument('--sweeps', type=int, default=30, help='sweeps per drive (default 30)')
     parser.add_argument('--perturb-px', type=float, default=0.0, metavar='P',
                         help='move every 2D label point by up to P px in u and v (default 0)')
     parser.add_argument('--lane-map', action='store_true',
                         help='also score the lane map (autolabel --lane-map) as training GT: '
                         'its training windows against the simulator\'s')
+    parser.add_argument('--labels', choices=('simulator', 'salad'), default='simulator',
+                        help="2D labels from the simulator (exact) or SALAD's lanes "
+                             '(fhld salad-labels2d: pseudo-labels)')
+    parser.add_argument('--min-paint-share', type=float, default=0.0, metavar='S',
+                        help='passed to fhld autolabel (default 0: off)')
     parser.add_argument('--json', action='store_true', help='print one JSON object last')
 
 
@@ -68,19 +75,26 @@ def perturb_labels(src: Path, dst: Path, px: float, seed: int) -> None:
 
 
 def run_drive(work: Path, seed: int, sensor: str, sweeps: int, perturb_px: float,
-              lane_map: bool = False) -> tuple[list, list, float, MapScores | None]:
+              lane_map: bool = False, salad: bool = False, min_paint_share: float = 0.0
+              ) -> tuple[list, list, float, MapScores | None]:
     """Frames scored against the visible and the full GT, autolabel's seconds and, with
-    lane_map, the lane map's training windows scored (score_lane_map)."""
+    lane_map, the lane map's training windows scored (score_lane_map). salad: SALAD's lanes
+    are the 2D labels instead of the simulator's."""
     bag, labels, lanes = work / 'drive', work / 'labels2d', work / 'autolabel'
     quiet = ['--quiet']
     if fhld(['simulate', str(bag), '--seed', str(seed), '--sweeps', str(sweeps), '--sensor',
              sensor, '--camera', '--labels2d', str(labels), *quiet]) != 0:
         raise ConfigError(f'fhld simulate failed for seed {seed}')
+    if salad:
+        labels = work / 'salad2d'
+        if fhld(['salad-labels2d', str(bag), str(labels), *quiet]) != 0:
+            raise ConfigError(f'fhld salad-labels2d failed for seed {seed}')
     if perturb_px > 0:
         perturb_labels(labels, work / 'perturbed', perturb_px, seed)
         labels = work / 'perturbed'
     start = time.perf_counter()
     if fhld(['autolabel', str(bag), str(lanes), '--labels2d', str(labels), *quiet,
+             '--min-paint-share', str(min_paint_share),
              *(['--lane-map'] if lane_map else [])]) != 0:
         raise ConfigError(f'fhld autolabel failed for seed {seed}')
     seconds = time.perf_counter() - start
@@ -92,19 +106,19 @@ def run_drive(work: Path, seed: int, sensor: str, sweeps: int, perturb_px: float
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.drives < 1 or args.sweeps < 1:
-        raise ConfigError('--drives and --sweeps must be >= 1')
+    if args.drives < 1 or args.sweeps < 1 or args.first_drive < 0:
+        raise ConfigError('--drives and --sweeps must be >= 1, --first-drive >= 0')
     if not 0 <= args.perturb_px <= 50:
         raise ConfigError(f'--perturb-px must be within 0..50, got {args.perturb_px:g}')
     sensors = list(SENSORS)
     visible, full, seconds, maps = [], [], [], MapScores()
     with tempfile.TemporaryDirectory(prefix='fhld-autolabel-eval-') as tmp:
-        for k in range(args.drives):
+        for k in range(args.first_drive, args.first_drive + args.drives):
             seed, sensor = AUTOLABEL_SEED_BASE + k, sensors[k % len(sensors)]
             work = Path(tmp) / f'drive_{k}'
             work.mkdir()
             v, f, s, m = run_drive(work, seed, sensor, args.sweeps, args.perturb_px,
-                                   args.lane_map)
+                                   args.lane_map, args.labels == 'salad', args.min_paint_share)
             visible += v
             full += f
             seconds.append(s)
@@ -115,7 +129,9 @@ def run(args: argparse.Namespace) -> int:
                   f'{one["F1@10"]:.1f}, F1@30 {one["F1@30"]:.1f}, autolabel {s:.1f} s'
                   f'{lane_map}', file=sys.stderr)
             maps += m or MapScores()
-    result = {'drives': args.drives, 'sweeps': args.sweeps, 'perturb_px': args.perturb_px,
+    result = {'drives': args.drives, 'first_drive': args.first_drive, 'sweeps': args.sweeps,
+              'labels': args.labels, 'min_paint_share': args.min_paint_share,
+              'perturb_px': args.perturb_px,
               'visible_gt': summary(visible), 'all_gt': summary(full),
               'autolabel_seconds': {'median': float(np.median(seconds)),
                                     'max': float(np.max(seconds))}}
