@@ -9,7 +9,7 @@ import pytest
 
 from fhld_ros.annotation.ground import segment_ground
 from fhld_ros.annotation.lane_regions import lane_members
-from fhld_ros.annotation.recovery import paint_share, recover_lane
+from fhld_ros.annotation.recovery import recover_lane
 from fhld_ros.camera.calibration import CameraCalibration
 from fhld_ros.camera.labels2d import (
     ImageLabels,
@@ -132,16 +132,3 @@ def test_lane_region_width_follows_depth_and_recovery_finds_the_paint():
     assert lane[0, 0] < 6 and lane[-1, 0] > 35
     assert np.abs(lane[:, 1] - 1.75).max() < 0.05, np.abs(lane[:, 1] - 1.75).max()
     assert np.abs(lane[:, 2] + 1.5).max() < 1e-6
-
-
-def test_paint_share_tells_a_solid_a_dashed_and_a_bare_line_apart():
-    rng = np.random.default_rng(4)
-    road = np.column_stack([rng.uniform(0, 40, 40_000), rng.uniform(-3, 3, 40_000),
-                            np.zeros(40_000)])
-    on_line = np.abs(road[:, 1] - 1.75) < 0.07
-    dashed = on_line & (road[:, 0] % 12.0 < 3.0)  # 3 m dashes, 9 m gaps
-    lane = np.column_stack([np.arange(0.0, 40.0, 0.5), np.full(80, 1.75), np.zeros(80)])
-    shares = [paint_share(lane, road, np.where(paint, 4.0, 1.0))
-              for paint in (on_line, dashed, np.zeros(len(road), dtype=bool))]
-    assert shares[0] > 0.95 and 0.25 <= shares[1] <= 0.35 and shares[2] == 0.0, shares
-    assert paint_share(lane + [0.0, 1.0, 0.0], road, np.where(on_line, 4.0, 1.0)) == 0.0

@@ -19,7 +19,7 @@ from scipy.ndimage import uniform_filter1d
 from fhld_ros.annotation.footprint import camera_footprint, ground_plane
 from fhld_ros.annotation.ground import GroundSurface, below_sensor, segment_ground
 from fhld_ros.annotation.lane_regions import LaneMembers, lane_members
-from fhld_ros.annotation.recovery import paint_share, recover_lane
+from fhld_ros.annotation.recovery import recover_lane
 from fhld_ros.camera.calibration import CameraCalibration
 from fhld_ros.camera.labels2d import ImageLabels
 from fhld_ros.geometry import pose_at, resample_polyline
@@ -67,7 +67,6 @@ class AutolabelCounts:
     images_without_labels: int = 0
     images_without_points: int = 0  # the camera saw no ground return at all
     label_points_outside_image: int = 0
-    lanes_without_paint: int = 0  # lifted lanes dropped by min_paint_share
 
 
 class PoseTrack:
@@ -86,12 +85,8 @@ class Autolabeler:
 
     def __init__(self, calib: CameraCalibration, labels: dict[int, ImageLabels],
                  image_stamps: list[int], poses: PoseTrack | None,
-                 past_s: float = PAST_S, future_s: float = FUTURE_S,
-                 min_paint_share: float = 0.0) -> None:
-        """min_paint_share > 0 drops lifted lanes with paint along less of their length
-        (recovery.paint_share): for labels that may lie off any line (pseudo-labels)."""
+                 past_s: float = PAST_S, future_s: float = FUTURE_S) -> None:
         self.calib, self.poses = calib, poses
-        self.min_paint_share = min_paint_share
         self.past_ns, self.future_ns = int(past_s * 1e9), int(future_s * 1e9)
         if poses is None:  # one sweep per image: the nearest
             self.past_ns = self.future_ns = 50_000_000
@@ -188,14 +183,9 @@ class Autolabeler:
             hits = hits[support <= SURFACE_SUPPORT_M]
             for piece in recover_lane(xyz[rows], members.t[own], contrast[rows], sweep[rows],
                                       rays, hits):
-                if np.linalg.norm(np.diff(piece[:, :2], axis=0), axis=1).sum() < MIN_LANE_M:
-                    continue
-                if self.min_paint_share and \
-                        paint_share(piece, xyz[rows], contrast[rows]) < self.min_paint_share:
-                    self.counts.lanes_without_paint += 1
-                    continue
-                lanes.append(piece)
-                ids.append(label_id)
+                if np.linalg.norm(np.diff(piece[:, :2], axis=0), axis=1).sum() >= MIN_LANE_M:
+                    lanes.append(piece)
+                    ids.append(label_id)
         self.counts.images += 1
         self.counts.lanes += len(lanes)
         # the window is what the camera sees of the ground plane of its returns in view, so

@@ -15,7 +15,6 @@ smoothed over neighbouring bins and resampled every step_m.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from fhld_ros.geometry import resample_polyline
 
@@ -29,7 +28,6 @@ RAY_REACH_M = 200.0
 RAY_STEPS = 30
 END_FIT = 4  # an end centre is checked against the line through this many next ones ...
 END_BEND_M = 0.08  # ... and dropped when further from it than this
-PAINT_REACH_M = 0.2  # a lane point is painted with a paint return this close (on the ground)
 
 
 def _chord(xyz: np.ndarray, t: np.ndarray) -> np.ndarray | None:
@@ -164,14 +162,3 @@ def _smooth(values: np.ndarray) -> np.ndarray:
     out = values.copy()
     out[1:-1] = (values[:-2] + 2 * values[1:-1] + values[2:]) / 4
     return out
-
-
-def paint_share(lane: np.ndarray, xyz: np.ndarray, contrast: np.ndarray) -> float:
-    """Share of the lane's points (K, 3) with a paint return (contrast >= PAINT_CONTRAST)
-    within PAINT_REACH_M on the ground: ~1 on a solid line, a quarter or more on a dashed one,
-    ~0 where a label lies on no paint (a curb, a seam, a label off the line)."""
-    paint = xyz[contrast >= PAINT_CONTRAST, :2]
-    if not len(paint) or not len(lane):
-        return 0.0
-    near, _ = cKDTree(paint).query(lane[:, :2], distance_upper_bound=PAINT_REACH_M)
-    return float(np.isfinite(near).mean())

@@ -65,9 +65,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         'odometry')
     parser.add_argument('--plots', type=Path, metavar='DIR',
                         help='also draw each labelled image: lanes over the image and from above')
-    parser.add_argument('--min-paint-share', type=float, default=0.0, metavar='S',
-                        help='drop lifted lanes with paint returns along less than this share '
-                             'of their length (for pseudo-labels, e.g. 0.1; default 0: off)')
     parser.add_argument('--points-topic', default='/points')
     parser.add_argument('--odom-topic', default='/odom',
                         help="odometry topic; '' or a topic absent from the bag: per sweep")
@@ -116,9 +113,6 @@ def _read_camera_and_odometry(args: argparse.Namespace, counts: dict[str, int],
 
 
 def _check(args: argparse.Namespace) -> dict[str, int]:
-    if not 0.0 <= args.min_paint_share <= 1.0:
-        raise ConfigError(f'--min-paint-share must be within [0, 1], got '
-                          f'{args.min_paint_share:g}')
     inputs = {'IN_BAG': args.in_bag, '--labels2d': args.labels2d}
     check_output(args.out_bag, args.overwrite, inputs)
     counts = topic_counts(args.in_bag)
@@ -172,8 +166,7 @@ def run(args: argparse.Namespace) -> int:
     cloud_frame = str(first_cloud.header.frame_id)
     calib, image_stamps, poses = _read_camera_and_odometry(args, counts, cloud_frame)
     _check_inputs(args, labels, calib, poses)
-    labeler = Autolabeler(calib, labels, image_stamps, poses,
-                          min_paint_share=args.min_paint_share)
+    labeler = Autolabeler(calib, labels, image_stamps, poses)
     if not labeler.stamps:
         raise ConfigError(f'no label file names an image of {args.in_bag}: label stamps '
                           f'{min(labels)}..{max(labels)} ns, images {min(image_stamps)}..'
@@ -232,9 +225,7 @@ def run(args: argparse.Namespace) -> int:
         skipped = (f'skipped: {c.labels_without_image} label files without an image, '
                    f'{c.images_without_labels} images without labels, '
                    f'{c.images_without_points} images without LiDAR ground in view; '
-                   f'{c.label_points_outside_image} label points outside the image dropped'
-                   + (f', {c.lanes_without_paint} lanes without paint dropped'
-                      if args.min_paint_share else ''))
+                   f'{c.label_points_outside_image} label points outside the image dropped')
         if c.images == 0:  # inside the writer: the bag is not kept
             raise ConfigError(f'no image could be labelled in 3D ({skipped})')
     made = '' if lane_map is None else f', lane map of {lane_map.lines} lines'

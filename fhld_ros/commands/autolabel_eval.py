@@ -59,8 +59,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--labels', choices=('simulator', 'salad'), default='simulator',
                         help="2D labels from the simulator (exact) or SALAD's lanes "
                              '(fhld salad-labels2d: pseudo-labels)')
-    parser.add_argument('--min-paint-share', type=float, default=0.0, metavar='S',
-                        help='passed to fhld autolabel (default 0: off)')
     parser.add_argument('--json', action='store_true', help='print one JSON object last')
 
 
@@ -75,7 +73,7 @@ def perturb_labels(src: Path, dst: Path, px: float, seed: int) -> None:
 
 
 def run_drive(work: Path, seed: int, sensor: str, sweeps: int, perturb_px: float,
-              lane_map: bool = False, salad: bool = False, min_paint_share: float = 0.0
+              lane_map: bool = False, salad: bool = False
               ) -> tuple[list, list, float, MapScores | None]:
     """Frames scored against the visible and the full GT, autolabel's seconds and, with
     lane_map, the lane map's training windows scored (score_lane_map). salad: SALAD's lanes
@@ -94,7 +92,6 @@ def run_drive(work: Path, seed: int, sensor: str, sweeps: int, perturb_px: float
         labels = work / 'perturbed'
     start = time.perf_counter()
     if fhld(['autolabel', str(bag), str(lanes), '--labels2d', str(labels), *quiet,
-             '--min-paint-share', str(min_paint_share),
              *(['--lane-map'] if lane_map else [])]) != 0:
         raise ConfigError(f'fhld autolabel failed for seed {seed}')
     seconds = time.perf_counter() - start
@@ -118,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
             work = Path(tmp) / f'drive_{k}'
             work.mkdir()
             v, f, s, m = run_drive(work, seed, sensor, args.sweeps, args.perturb_px,
-                                   args.lane_map, args.labels == 'salad', args.min_paint_share)
+                                   args.lane_map, args.labels == 'salad')
             visible += v
             full += f
             seconds.append(s)
@@ -130,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
                   f'{lane_map}', file=sys.stderr)
             maps += m or MapScores()
     result = {'drives': args.drives, 'first_drive': args.first_drive, 'sweeps': args.sweeps,
-              'labels': args.labels, 'min_paint_share': args.min_paint_share,
+              'labels': args.labels,
               'perturb_px': args.perturb_px,
               'visible_gt': summary(visible), 'all_gt': summary(full),
               'autolabel_seconds': {'median': float(np.median(seconds)),
