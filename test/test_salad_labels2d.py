@@ -4,6 +4,7 @@ follows the rule that a command replaces only what it writes."""
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 import numpy as np
@@ -77,3 +78,12 @@ def test_the_label_folder_is_never_cleared(drive: Path, capsys):
                      *bad]) == 2
         assert message in capsys.readouterr().err
     assert not (drive / 'other').exists()
+
+
+def test_autolabel_eval_scores_pseudo_labels_on_a_held_out_drive(capsys):
+    assert main(['autolabel-eval', '--labels', 'salad', '--first-drive', '3', '--drives', '1',
+                 '--sweeps', '6', '--json']) == 0
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert result['labels'] == 'salad' and result['first_drive'] == 3
+    # SALAD's labels, lifted: far from the exact labels' 97 / 99, far above nothing
+    assert result['visible_gt']['point']['F1@30'] >= 50, result['visible_gt']
