@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 from tqdm import tqdm
@@ -37,10 +38,29 @@ def replay_camera(in_bag: Path, out_bag: Path, params: CameraParams,
                                                            params.model_threads))
     lanes_topic = '/' + params.lanes_topic.strip('/')
     detections = 0
+    with BagWriter(out_bag, overwrite, inputs) as writer:
+        for _ in feed_camera(pipeline, in_bag, counts, image_topic, camera_info_topic,
+                             'replay', progress):
+            while (out := pipeline.detect()) is not None:
+                for suffix, cdr in lane_messages(out).items():
+                    writer.write(lanes_topic + suffix, LANE_TOPICS[suffix], out.stamp_ns, cdr)
+                detections += 1
+    c = pipeline.counters
+    return {'images': c['images'] + c['bad_images'], 'dropped': c['bad_images'],
+            'skipped': c['images_skipped'], 'bad_camera_info': c['bad_camera_info'],
+            'detections': detections}
+
+
+def feed_camera(pipeline: CameraPipeline, in_bag: Path, counts: dict[str, int],
+                image_topic: str, camera_info_topic: str, desc: str, progress: bool
+                ) -> Iterator[None]:
+    """Every camera_info and image of in_bag into the pipeline in bag order, a dropped one
+    written above the progress bar with its reason; yields after each message, for the
+    caller to take what became due."""
     topics = [camera_info_topic, image_topic]
     bar = tqdm(total=sum(counts[t] for t in topics), unit='msg', disable=not progress,
-               desc='replay', file=sys.stderr)
-    with BagWriter(out_bag, overwrite, inputs) as writer:
+               desc=desc, file=sys.stderr)
+    try:
         for topic, _, msg in read_messages(in_bag, topics):
             bar.update()
             if topic == camera_info_topic:
@@ -50,15 +70,9 @@ def replay_camera(in_bag: Path, out_bag: Path, params: CameraParams,
             if problem is not None:
                 kind = 'camera_info' if topic == camera_info_topic else 'image'
                 bar.write(f'dropped {kind} at {stamp_s(msg)}: {problem}')
-            while (out := pipeline.detect()) is not None:
-                for suffix, cdr in lane_messages(out).items():
-                    writer.write(lanes_topic + suffix, LANE_TOPICS[suffix], out.stamp_ns, cdr)
-                detections += 1
-    bar.close()
-    c = pipeline.counters
-    return {'images': c['images'] + c['bad_images'], 'dropped': c['bad_images'],
-            'skipped': c['images_skipped'], 'bad_camera_info': c['bad_camera_info'],
-            'detections': detections}
+            yield
+    finally:
+        bar.close()
 
 
 def require_topics(in_bag: Path, counts: dict[str, int], topics: tuple[str, ...]) -> None:

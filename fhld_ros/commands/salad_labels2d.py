@@ -16,19 +16,17 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
-from fhld_ros.bagio import check_file_output, read_messages, topic_counts
+from fhld_ros.bagio import check_file_output, topic_counts
 from fhld_ros.camera.labels2d import ImageLabels, LaneLabel2D, label_path, write_labels
 from fhld_ros.commands.replay_camera import (
     CAMERA_INFO_TOPIC,
     IMAGE_TOPIC,
+    feed_camera,
     require_topics,
-    stamp_s,
 )
 from fhld_ros.errors import ConfigError
 from fhld_ros.salad.camera_pipeline import CameraImage, CameraPipeline, load_camera_detector
@@ -92,20 +90,9 @@ def write_pseudo_labels(in_bag: Path, out_dir: Path, min_score: float = DEFAULT_
     params = dataclasses.replace(CameraParams(), checkpoint=checkpoint, rate_hz=1000.0,
                                  score_threshold=0.0)
     pipeline = CameraPipeline(params, load_camera_detector(checkpoint))
-    found = {'images': 0, 'labelled': 0, 'labels': 0, 'dropped': 0}
-    topics = [camera_info_topic, image_topic]
-    bar = tqdm(total=sum(counts[t] for t in topics), unit='msg', disable=not progress,
-               desc='salad-labels2d', file=sys.stderr)
-    for topic, _, msg in read_messages(in_bag, topics):
-        bar.update()
-        if topic == camera_info_topic:
-            problem = pipeline.receive_camera_info(msg)
-        else:
-            problem = pipeline.receive_image(msg).dropped
-        if problem is not None:
-            found['dropped'] += topic == image_topic
-            bar.write(f'dropped {"image" if topic == image_topic else "camera_info"} at '
-                      f'{stamp_s(msg)}: {problem}')
+    found = {'images': 0, 'labelled': 0, 'labels': 0}
+    for _ in feed_camera(pipeline, in_bag, counts, image_topic, camera_info_topic,
+                         'salad-labels2d', progress):
         image = pipeline.due_image()
         if image is None:
             continue
@@ -117,8 +104,7 @@ def write_pseudo_labels(in_bag: Path, out_dir: Path, min_score: float = DEFAULT_
         found['images'] += 1
         found['labelled'] += bool(labels.lanes)
         found['labels'] += len(labels.lanes)
-    bar.close()
-    return found
+    return {**found, 'dropped': pipeline.counters['bad_images']}
 
 
 def run(args: argparse.Namespace) -> int:
