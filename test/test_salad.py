@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -183,6 +184,9 @@ def test_detector_and_scoring_run_on_any_camera(tmp_path):
         'warp_ms', 'model_ms', 'decode_ms'}
     rows = score(detector, [CameraLaneSample(image, k, _road(), 'grey')])
     assert set(rows) == {'tau_0.15', 'tau_0.30', 'tau_0.50', 'official', 'by_range'}
+    if not lanes:  # nothing compared: no error, and valid JSON (no NaN)
+        assert all(r['median_m'] is None for r in rows['by_range'].values())
+        json.dumps(rows, allow_nan=False)
     assert rows['tau_0.30']['gt'] == 4 and rows['tau_0.30']['images'] == 1
 
 

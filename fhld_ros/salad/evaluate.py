@@ -97,9 +97,9 @@ def _by_range(errors: np.ndarray) -> dict[str, dict]:
     out = {}
     for i, (lo, hi) in enumerate(zip(RANGE_EDGES_M[:-1], RANGE_EDGES_M[1:])):
         e = errors[band == i, 1]
-        out[f'{lo:.0f}-{hi:.0f}m'] = {
-            'median_m': float(np.median(e)) if len(e) else float('nan'),
-            'mean_m': float(e.mean()) if len(e) else float('nan'), 'points': int(len(e))}
+        out[f'{lo:.0f}-{hi:.0f}m'] = {  # None where no GT point lies: JSON has no NaN
+            'median_m': float(np.median(e)) if len(e) else None,
+            'mean_m': float(e.mean()) if len(e) else None, 'points': int(len(e))}
     return out
 
 
@@ -117,8 +117,8 @@ def _print(name: str, rows: dict[str, dict]) -> None:
             print(f'  {key:10s} F1 {r["F1"]:5.1f}  P {r["P"]:5.1f}  R {r["R"]:5.1f}  '
                   f'CD {r["CD"]:.3f} m')
     print('  error by range (GT points of compared pairs to the prediction), median / mean m:')
-    print('  ' + '  '.join(f'{band} {r["median_m"]:.2f} / {r["mean_m"]:.2f}'
-                           for band, r in rows['by_range'].items()))
+    print('  ' + '  '.join(f'{band} {r["median_m"]:.2f} / {r["mean_m"]:.2f}' if r['points']
+                           else f'{band} -' for band, r in rows['by_range'].items()))
 
 
 def run(args: argparse.Namespace) -> int:
