@@ -238,3 +238,21 @@ def test_an_autolabel_once_json_gives_a_real_image_its_lanes(tmp_path):
     sample = with_lanes(CameraLaneSample(image, np.eye(3), [], 'pjlab'), path)
     assert sample.name == 'pjlab' and len(sample.lanes) == 1
     np.testing.assert_allclose(sample.lanes[0][-1], [0.3, 1.8, 19.0])
+
+
+def test_training_can_start_from_shipped_weights(tmp_path):
+    from fhld_ros.cli import main
+    from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT
+
+    out = tmp_path / 'run'
+    assert main(['salad-train', str(out), '--drives', '1', '--frames', '1', '--steps', '2',
+                 '--batch', '1', '--workers', '1', '--threads', '1',
+                 '--init', str(DEFAULT_SALAD_CHECKPOINT)]) == 0
+    tuned, info = load_salad(out / 'salad.pt')
+    shipped, _ = load_salad(DEFAULT_SALAD_CHECKPOINT)
+    assert tuned.cfg == shipped.cfg  # its row depth statistics, not this one image's
+    assert info['meta']['init'] == str(DEFAULT_SALAD_CHECKPOINT) and info['meta']['steps'] == 2
+    assert info['meta']['init_steps'] == load_salad(DEFAULT_SALAD_CHECKPOINT)[1]['meta']['steps']
+    moved = [not torch.equal(a, b) for a, b in zip(tuned.state_dict().values(),
+                                                   shipped.state_dict().values())]
+    assert any(moved)  # it trained from there

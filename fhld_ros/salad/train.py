@@ -23,7 +23,7 @@ from torch.utils.data import DataLoader
 
 from fhld_ros.errors import ConfigError
 from fhld_ros.salad.augment import SaladAugment
-from fhld_ros.salad.checkpoint import config_from_plain, save_salad
+from fhld_ros.salad.checkpoint import config_from_plain, load_salad, save_salad
 from fhld_ros.salad.config import SaladConfig
 from fhld_ros.salad.dataset import SHARD_SUFFIX, SaladDataset, ShardSamples, simulated_shard
 from fhld_ros.salad.losses import SaladCriterion
@@ -47,6 +47,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--workers', type=int, default=1, help='data and render processes')
     parser.add_argument('--save-every', type=int, default=250)
     parser.add_argument('--resume', action='store_true', help='continue OUT/state.pt')
+    parser.add_argument('--init', type=Path, metavar='CHECKPOINT',
+                        help='start from these SALAD weights (their config and row depth '
+                             'statistics; a fresh optimiser and schedule), e.g. the shipped')
     parser.add_argument('--device', default='cpu')
     parser.add_argument('--threads', type=int, default=0,
                         help='torch threads (0: torch\'s default); 1 keeps a shared machine '
@@ -96,9 +99,14 @@ def _start(args: argparse.Namespace, samples: ShardSamples) -> tuple[SaladNet, d
         return model.to(args.device), state
     if state_path.exists():
         raise ConfigError(f'{state_path} exists: --resume to continue it, or another OUT')
+    state = {'step': 0, 'command': ' '.join(sys.argv)}
+    if args.init is not None:
+        model, info = load_salad(args.init)
+        return model.to(args.device), {**state, 'init': str(args.init),
+                                       'init_meta': info.get('meta', {})}
     cfg = measure_rows(samples, SaladConfig())
     cfg.validate()
-    return SaladNet(cfg).to(args.device), {'step': 0, 'command': ' '.join(sys.argv)}
+    return SaladNet(cfg).to(args.device), state
 
 
 def run(args: argparse.Namespace) -> int:
@@ -151,4 +159,6 @@ def _save(args: argparse.Namespace, model: SaladNet, optimiser: torch.optim.Opti
     torch.save(state, tmp)
     tmp.replace(args.out / 'state.pt')
     save_salad(args.out / 'salad.pt', model, state['command'],
-               {'steps': step, 'images': images, 'drives': args.drives, 'frames': args.frames})
+               {'steps': step, 'images': images, 'drives': args.drives, 'frames': args.frames,
+                **({'init': state['init'], 'init_steps': state['init_meta'].get('steps')}
+                   if 'init' in state else {})})
