@@ -127,8 +127,7 @@ def run(args: argparse.Namespace) -> int:
                   f'{lane_map}', file=sys.stderr)
             maps += m or MapScores()
     result = {'drives': args.drives, 'first_drive': args.first_drive, 'sweeps': args.sweeps,
-              'labels': args.labels,
-              'perturb_px': args.perturb_px,
+              'labels': args.labels, 'perturb_px': args.perturb_px,
               'visible_gt': summary(visible), 'all_gt': summary(full),
               'autolabel_seconds': {'median': float(np.median(seconds)),
                                     'max': float(np.max(seconds))}}
