@@ -86,10 +86,10 @@ def write_pseudo_labels(in_bag: Path, out_dir: Path, min_score: float = DEFAULT_
     _check_out_dir(out_dir, overwrite)
     counts = topic_counts(in_bag)
     require_topics(in_bag, counts, (image_topic, camera_info_topic))
-    # every image is detected (rate_hz at its maximum), lanes filtered here by min_score
-    params = dataclasses.replace(CameraParams(), checkpoint=checkpoint, rate_hz=1000.0,
-                                 score_threshold=0.0)
-    pipeline = CameraPipeline(params, load_camera_detector(checkpoint))
+    # every image is detected (rate_hz at its maximum); the lanes are taken from the detector
+    # itself (optical frame, all scores), filtered here by min_score
+    pipeline = CameraPipeline(dataclasses.replace(CameraParams(), rate_hz=1000.0),
+                              load_camera_detector(checkpoint))
     found = {'images': 0, 'labelled': 0, 'labels': 0}
     for _ in feed_camera(pipeline, in_bag, counts, image_topic, camera_info_topic,
                          'salad-labels2d', progress):

@@ -270,29 +270,36 @@ def unilateral_chamfer(gt_lane: np.ndarray, pred_lane: np.ndarray,
     return float(dist.mean())
 
 
-def once_pairs(pred_lanes: Lanes, gt_lanes: Lanes, half_size: float,
-               iou_thresh: float = ONCE_IOU_THRESH) -> list[tuple[int, int]]:
-    """(GT index, prediction index) of the pairs the paper's metric compares: Hungarian
-    assignment on 1 - top-view IoU, pairs below iou_thresh dropped."""
+def once_matches(pred_lanes: Lanes, gt_lanes: Lanes, half_size: float,
+                 iou_thresh: float = ONCE_IOU_THRESH) -> list[tuple[int, int, float]]:
+    """(GT index, prediction index, unilateral chamfer distance) of the pairs the paper's
+    metric compares: Hungarian assignment on 1 - top-view IoU, pairs below iou_thresh
+    dropped. Score them at any tau_CD with lane_counts."""
     if not pred_lanes or not gt_lanes:
         return []
     iou = _iou_matrix([topview_mask(g, half_size) for g in gt_lanes],
                       [topview_mask(p, half_size) for p in pred_lanes])
-    return [(int(gi), int(pi)) for gi, pi in zip(*linear_sum_assignment(1.0 - iou))
-            if iou[gi, pi] >= iou_thresh]
+    return [(int(gi), int(pi), unilateral_chamfer(gt_lanes[gi], pred_lanes[pi]))
+            for gi, pi in zip(*linear_sum_assignment(1.0 - iou)) if iou[gi, pi] >= iou_thresh]
+
+
+def lane_counts(matches: Sequence[tuple[int, int, float]], n_pred: int, n_gt: int,
+                cd_thresh: float = ONCE_CD_THRESH) -> LaneCounts:
+    """Counts of one frame from its once_matches: a match is a TP when its CD <= cd_thresh."""
+    counts = LaneCounts(n_pred=n_pred, n_gt=n_gt)
+    for _, _, cd in matches:
+        if cd <= cd_thresh:
+            counts.tp += 1
+            counts.cd_sum += cd
+    return counts
 
 
 def once_counts(pred_lanes: Lanes, gt_lanes: Lanes, half_size: float,
                 iou_thresh: float = ONCE_IOU_THRESH,
                 cd_thresh: float = ONCE_CD_THRESH) -> LaneCounts:
     """ONCE-3DLanes counts of one frame as the paper defines the metric (see module doc)."""
-    counts = LaneCounts(n_pred=len(pred_lanes), n_gt=len(gt_lanes))
-    for gi, pi in once_pairs(pred_lanes, gt_lanes, half_size, iou_thresh):
-        cd = unilateral_chamfer(gt_lanes[gi], pred_lanes[pi])
-        if cd <= cd_thresh:
-            counts.tp += 1
-            counts.cd_sum += cd
-    return counts
+    return lane_counts(once_matches(pred_lanes, gt_lanes, half_size, iou_thresh),
+                       len(pred_lanes), len(gt_lanes), cd_thresh)
 
 
 # --- ONCE released evaluator --------------------------------------------------------------

@@ -25,9 +25,9 @@ from fhld_ros.errors import ConfigError
 from fhld_ros.evaluation.metrics import (
     SAMPLE_STEP,
     LaneCounts,
-    once_counts,
+    lane_counts,
     once_counts_official,
-    once_pairs,
+    once_matches,
 )
 from fhld_ros.geometry import resample_polyline
 from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT
@@ -72,10 +72,11 @@ def score(detector: SaladDetector, samples: Iterable[CameraLaneSample]) -> dict[
         lanes, scores = detector(sample.image, sample.intrinsics)
         pred = [optical_to_window(lane) for lane in lanes]
         gt = [optical_to_window(lane) for lane in sample.lanes if len(lane) >= 2]
+        matches = once_matches(pred, gt, HALF_SIZE_M)  # one assignment for every tau
         for tau in TAUS:
-            counts[tau] = counts[tau] + once_counts(pred, gt, HALF_SIZE_M, cd_thresh=tau)
+            counts[tau] = counts[tau] + lane_counts(matches, len(pred), len(gt), tau)
         official = official + once_counts_official(pred, scores, gt)
-        errors += [_point_errors(gt[g], pred[p]) for g, p in once_pairs(pred, gt, HALF_SIZE_M)]
+        errors += [_point_errors(gt[g], pred[p]) for g, p, _ in matches]
         images += 1
     rows = {f'tau_{tau:.2f}': c.scores() for tau, c in counts.items()}
     rows['official'] = official.scores()

@@ -103,7 +103,7 @@ def _start(args: argparse.Namespace, samples: ShardSamples) -> tuple[SaladNet, d
     if args.init is not None:
         model, info = load_salad(args.init)
         return model.to(args.device), {**state, 'init': str(args.init),
-                                       'init_meta': info.get('meta', {})}
+                                       'init_steps': info.get('meta', {}).get('steps')}
     cfg = measure_rows(samples, SaladConfig())
     cfg.validate()
     return SaladNet(cfg).to(args.device), state
@@ -160,5 +160,4 @@ def _save(args: argparse.Namespace, model: SaladNet, optimiser: torch.optim.Opti
     tmp.replace(args.out / 'state.pt')
     save_salad(args.out / 'salad.pt', model, state['command'],
                {'steps': step, 'images': images, 'drives': args.drives, 'frames': args.frames,
-                **({'init': state['init'], 'init_steps': state['init_meta'].get('steps')}
-                   if 'init' in state else {})})
+                **{key: state[key] for key in ('init', 'init_steps') if key in state}})
