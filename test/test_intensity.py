@@ -206,6 +206,27 @@ def test_a_larger_share_changes_more_of_the_same_seeds_and_nothing_else(share, t
         dataclasses.replace(bare, **{share: 1.5}).validate()
 
 
+def test_worn_paint_share_and_max_change_only_the_paint(tmp_path):
+    base = CacheSettings(sensor_variation=True, road_look=True, bare_curbs=True)
+    worn = dataclasses.replace(base, worn_paint_share=0.9, worn_paint_max=3.0)
+    before = [scenario_for_seed(seed, base) for seed in range(300)]
+    after = [scenario_for_seed(seed, worn) for seed in range(300)]
+    for old, new in zip(before, after):
+        assert {k: v for k, v in old.items() if k != 'paint_contrast'} == \
+            {k: v for k, v in new.items() if k != 'paint_contrast'}
+        if old['paint_contrast'] is not None:  # worn before: worn after, no brighter
+            assert 1.6 <= new['paint_contrast'] <= min(old['paint_contrast'], 3.0) + 1e-3
+    contrasts = [s['paint_contrast'] for s in after if s['paint_contrast'] is not None]
+    assert 0.8 < len(contrasts) / 300 and max(contrasts) <= 3.0
+    assert 0.5 < np.mean([s['paint_contrast'] is not None for s in before]) < 0.7
+    assert scenario_for_seed(TEST_SEED_BASE, worn) == scenario_for_seed(TEST_SEED_BASE)
+    build_cache(tmp_path, [], base, workers=1, progress=False)
+    with pytest.raises(ValueError, match='other settings'):
+        build_cache(tmp_path, [], worn, workers=1, progress=False)
+    with pytest.raises(ValueError, match='worn_paint_max'):
+        dataclasses.replace(base, worn_paint_max=1.0).validate()
+
+
 def _sim_sweep(sensor: str, sigma: float | None, seed: int = 2_000_777
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sensor-frame xyz, raw intensity and true ring of one simulated sweep (returns only)."""

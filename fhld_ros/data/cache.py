@@ -93,6 +93,10 @@ class CacheSettings:
                                            'without odometry', range='[0, 1]')
     bright_asphalt_share: float = documented(SHARES['bright_asphalt_share'], 'KITTI-like bright '
                                              'pavement (with road_look)', range='[0, 1]')
+    worn_paint_share: float = documented(SHARES['worn_paint_share'], 'roads with worn paint',
+                                         range='[0, 1]')
+    worn_paint_max: float = documented(SHARES['worn_paint_max'], "worn paint's reflectance at "
+                                       'most, x the asphalt (variation.py)', range='[1.6, inf)')
 
     def validate(self, where: str = '', names: dict[str, str] | None = None) -> None:
         """ConfigError naming every unusable setting (as `where.name`, or the name `names`

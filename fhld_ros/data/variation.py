@@ -15,6 +15,7 @@ from fhld_ros.sim.lidar import INTENSITY_SCALES
 # below ~1.6x, worn simulated paint is lost in the asphalt's own patches (+-25 %), and lanes
 # taught there were drawn on unmarked roads too (docs/training.md)
 WORN_PAINT_RANGE = (1.6, 8.0)
+WORN_PAINT_SHARE = 0.6
 NO_MARKINGS_SHARE = 0.2
 SINGLE_SWEEP_SHARE = 0.2
 BRIGHT_ASPHALT_RANGE = (0.16, 0.32)  # KITTI-like pavement (the usual one: 0.07-0.14)
@@ -28,9 +29,11 @@ BARE_CURB_SHARE = 0.5
 # share of the seeds draws each laser's gain log-normal with a sigma in LASER_GAIN_SIGMA_RANGE
 LASER_GAIN_SHARE = 0.5
 LASER_GAIN_SIGMA_RANGE = (0.15, 0.3)
-# CacheSettings fields that set a share of the seeds, and their defaults
+# CacheSettings fields that set how the seeds vary (a share of them, the worn paint's
+# brightest), recorded in the cache index under 'variation', and their defaults
 SHARES = {'no_markings_share': NO_MARKINGS_SHARE, 'single_sweep_share': SINGLE_SWEEP_SHARE,
-          'bright_asphalt_share': ROAD_LOOK_SHARE}
+          'bright_asphalt_share': ROAD_LOOK_SHARE, 'worn_paint_share': WORN_PAINT_SHARE,
+          'worn_paint_max': WORN_PAINT_RANGE[1]}
 
 
 class VariationOptions(Protocol):
@@ -39,6 +42,8 @@ class VariationOptions(Protocol):
     no_markings_share: float
     single_sweep_share: float
     bright_asphalt_share: float
+    worn_paint_share: float
+    worn_paint_max: float
     road_look: bool
     bare_curbs: bool
     laser_gains: bool
@@ -47,9 +52,9 @@ class VariationOptions(Protocol):
 def sensor_variation(seed: int, settings: VariationOptions) -> dict:
     """What real sensors and roads vary, drawn per training seed (settings: which options):
 
-    * paint: 60 % worn, beads gone, reflectance WORN_PAINT_RANGE x the asphalt's
-      (log-uniform); else fresh retro-reflective paint (~15-20x); no_markings_share of the roads
-      carry no paint at all
+    * paint: worn_paint_share of the roads worn, beads gone, reflectance WORN_PAINT_RANGE's
+      low end to worn_paint_max x the asphalt's (log-uniform); else fresh retro-reflective
+      paint (~15-20x); no_markings_share of the roads carry no paint at all
     * units: 1/4 each the preset's own, uint16 reflectivity, 0-1 float, 0-255 counts
     * gain: half the seeds x0.25-x4 (log-uniform; integer counts round and saturate)
     * mount: half the seeds 1.4-2.5 m above the road instead of the preset's height
@@ -64,8 +69,8 @@ def sensor_variation(seed: int, settings: VariationOptions) -> dict:
       in LASER_GAIN_SIGMA_RANGE (its own stream too)
     """
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x5E75]))
-    worn = rng.random() < 0.6
-    contrast = _log_uniform(rng, *WORN_PAINT_RANGE)
+    worn = rng.random() < settings.worn_paint_share
+    contrast = _log_uniform(rng, WORN_PAINT_RANGE[0], settings.worn_paint_max)
     units = (None, *INTENSITY_SCALES)[int(rng.integers(4))]
     gain = _log_uniform(rng, 0.25, 4.0) if rng.random() < 0.5 else 1.0
     mount = round(float(rng.uniform(1.4, 2.5)), 3) if rng.random() < 0.5 else None
@@ -83,9 +88,11 @@ def variation_record(settings: VariationOptions) -> dict:
 
     A share at its default is recorded as before it was a setting, so older caches stay valid.
     """
-    record = {'worn_paint_range': list(WORN_PAINT_RANGE),
+    record = {'worn_paint_range': [WORN_PAINT_RANGE[0], settings.worn_paint_max],
               'no_markings_share': settings.no_markings_share,
               'single_sweep_share': settings.single_sweep_share}
+    if settings.worn_paint_share != WORN_PAINT_SHARE:
+        record['worn_paint_share'] = settings.worn_paint_share
     if settings.road_look:
         record.update(bright_asphalt_range=list(BRIGHT_ASPHALT_RANGE),
                       gutter_ratio_range=list(GUTTER_RATIO_RANGE), mount_tilt_deg=MOUNT_TILT_DEG,
