@@ -258,3 +258,28 @@ def test_footprint_is_the_ground_the_camera_sees_at_any_pitch(roll_deg: float) -
         else:  # a fifth corner may be cut off
             assert inside.sum() >= 0.9 * visible.sum(), pitch
     assert seen >= 8
+
+
+def test_once_dataset_gives_salad_the_labelled_images(drive: Path, capsys):
+    from fhld_ros.salad.once_format import read_once
+
+    root = drive / 'salad_data'
+    assert run(drive, 'lanes_o', '--once-dataset', str(root), '--once-json',
+               str(drive / 'once_o')) == 0
+    samples = list(read_once(root, 'train'))
+    assert len(samples) == SWEEPS  # every labelled image, under the bag's name
+    assert all(s.name.startswith('drive/cam01/') for s in samples)
+    calib = SimCamera(Simulator(SEED, sweeps=1, sensor=SENSOR), 640, 400).calibration()
+    for sample in samples:
+        assert sample.image.shape == (400, 640, 3) and sample.image.std() > 10
+        np.testing.assert_allclose(sample.intrinsics, calib.K)
+        # the lanes --once-json writes, near to far
+        once = json.loads((drive / 'once_o' / f'{sample.name.split("/")[-1]}.json').read_text())
+        assert len(sample.lanes) == len(once['lanes']) > 0
+        for got, lane in zip(sample.lanes, once['lanes']):
+            lane = np.asarray(lane)
+            np.testing.assert_allclose(got, lane if lane[0, 2] < lane[-1, 2] else lane[::-1])
+    # written files are not replaced without --overwrite
+    assert run(drive, 'lanes_o2', '--once-dataset', str(root)) != 0
+    assert '--once-dataset' in capsys.readouterr().err
+    assert run(drive, 'lanes_o2', '--once-dataset', str(root), '--overwrite') == 0

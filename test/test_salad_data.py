@@ -237,3 +237,50 @@ def test_real_openlane_examples_project_onto_their_uv():
         assert all(lane[:, 2].min() > 5 for lane in sample.lanes)
         gap = np.linalg.norm(uv[:, None] - projected[None], axis=2)
         assert gap.min(axis=1).max() < 2.0 and gap.min(axis=0).max() < 2.0
+
+
+def test_salad_trains_on_a_users_once_and_openlane_data(tmp_path, capsys):
+    from fhld_ros.cli import main
+    from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT, load_salad
+    from fhld_ros.salad.dataset import ShardSamples, to_virtual
+    from fhld_ros.salad.virtual_camera import VirtualCamera
+
+    seed = salad_seeds('train', 1, start=7)[0]
+    once = list(simulated_samples(seed, 3, (480, 270)))
+    write_once(tmp_path / 'once', 'train', once, sequence='000101')
+    write_once(tmp_path / 'once', 'val', once[:1], sequence='000102')  # another split: not read
+    write_openlane(tmp_path / 'openlane', _samples(), split='training')
+    out, cache = tmp_path / 'run', tmp_path / 'run' / 'cache'
+    train = ['salad-train', str(out), '--drives', '0', '--batch', '1', '--workers', '0',
+             '--threads', '1', '--init', str(DEFAULT_SALAD_CHECKPOINT)]
+    assert main([*train, '--steps', '2', '--once', str(tmp_path / 'once'), '--openlane',
+                 str(tmp_path / 'openlane'), '--openlane-labels',
+                 str(tmp_path / 'openlane' / 'lane3d_1000' / 'training')]) == 0
+    # every labelled image of the chosen split and folder, resampled to the virtual camera
+    shards = sorted(cache.glob('*.npz'))
+    assert [p.name.split('-')[0] for p in shards] == ['once', 'openlane']
+    samples = ShardSamples(shards[:1])
+    assert len(samples) == 3 and len(ShardSamples(shards)) == 5
+    for i, sample in enumerate(read_once(tmp_path / 'once', 'train')):
+        want = to_virtual(once[i], VirtualCamera()).image.astype(int)
+        assert np.abs(samples.images[i] - want).mean() < 3  # JPEG
+        kept = [lane for lane in sample.lanes if len(lane) >= 2]
+        assert len(samples.lanes[i]) == len(kept) > 0
+        for got, lane in zip(samples.lanes[i], kept):
+            np.testing.assert_allclose(got, lane, atol=1e-5)  # float32 in the shard
+    _, info = load_salad(out / 'salad.pt')
+    assert info['meta']['images'] == 5 and len(info['meta']['datasets']) == 2
+    assert info['meta']['datasets'][0].endswith(f'{tmp_path / "once"} train')
+    # a resumed run reuses the packed images: the shards are not written again
+    mtimes = [p.stat().st_mtime_ns for p in shards]
+    assert main([*train[:-2], '--steps', '3', '--resume', '--once',
+                 str(tmp_path / 'once')]) == 0
+    assert [p.stat().st_mtime_ns for p in sorted(cache.glob('*.npz'))] == mtimes
+    assert load_salad(out / 'salad.pt')[1]['meta']['steps'] == 3
+    # bad input: one line naming the problem
+    capsys.readouterr()
+    train[1] = str(tmp_path / 'bad')
+    assert main([*train, '--steps', '1', '--once', str(tmp_path / 'none')]) != 0
+    assert 'no such ONCE-3DLanes split directory' in capsys.readouterr().err
+    assert main([*train, '--steps', '1', '--openlane-labels', str(tmp_path)]) != 0
+    assert '--openlane-labels needs --openlane' in capsys.readouterr().err

@@ -9,15 +9,18 @@ stamps). Each label file (`<stamp_ns>.json`) labels the image at that stamp. OUT
 its bev_window the ground the camera sees up to the depth its ground returns reach
 (annotation/footprint.py), so `fhld eval OUT_BAG IN_BAG` scores it against the /lanes_gt lines
 the camera could label. --once-json DIR also writes the ONCE-3DLanes layout (lanes in the
-camera frame) per image. --lane-map makes OUT_BAG a training bag as well
-(data/bag_source.py): the drive's /points and /odom copied, and on /lanes_gt one message,
-stamped with the earliest sweep, holding the lane map of all images (annotation/lane_map.py).
-OUT_BAG and --once-json follow bagio's output rule.
+camera frame) per image; --once-dataset ROOT a SALAD training set in that layout, each
+labelled image with its lanes (`fhld salad-train --once ROOT`). --lane-map makes OUT_BAG a
+training bag as well (data/bag_source.py): the drive's /points and /odom copied, and on
+/lanes_gt one message, stamped with the earliest sweep, holding the lane map of all images
+(annotation/lane_map.py).
+OUT_BAG and the files follow bagio's output rule.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import time
 from pathlib import Path
@@ -42,6 +45,8 @@ from fhld_ros.camera.camera_topics import CAMERA_INFO, IMAGE, TF_STATIC
 from fhld_ros.camera.labels2d import ImageLabels, read_label_dir
 from fhld_ros.data.bag_source import LANES_GT, MARKER_ARRAY, ODOM, POINTS, TOPIC_TYPES
 from fhld_ros.errors import ConfigError
+from fhld_ros.salad.once_format import CAMERA, IMAGE_DIRS, write_once
+from fhld_ros.salad.sample import CameraLaneSample
 from msg_adapters.camera import msg_to_image
 from msg_adapters.family import stamp_to_ns
 from msg_adapters.lanes import lanes_to_marker_array, unique_marker_ids
@@ -59,6 +64,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='camera calibration (instead of /camera/camera_info + /tf_static)')
     parser.add_argument('--once-json', type=Path, metavar='DIR',
                         help='also write ONCE-3DLanes JSON (camera frame), one per image')
+    parser.add_argument('--once-dataset', type=Path, metavar='ROOT',
+                        help='also write each labelled image and its 3D lanes as ONCE-3DLanes '
+                        'training data: ROOT/train/<IN_BAG name>/cam01/<stamp_ns>.json and '
+                        'ROOT/data/.../<stamp_ns>.jpg (fhld salad-train --once ROOT)')
     parser.add_argument('--lane-map', action='store_true',
                         help='also make OUT_BAG a training bag (fhld train data.bags): /points '
                         'and /odom copied, the merged lanes of all images on /lanes_gt; needs '
@@ -122,12 +131,22 @@ def _check(args: argparse.Namespace) -> dict[str, int]:
     return counts
 
 
+def _camera_lanes(image: LabelledImage) -> list[np.ndarray]:
+    """The image's 3D lanes in the camera (optical) frame, to the 0.1 mm."""
+    T = np.linalg.inv(image.T_out_camera)
+    return [np.round(lane @ T[:3, :3].T + T[:3, 3], 4) for lane in image.lanes]
+
+
 def _once_json(calib: CameraCalibration, image: LabelledImage) -> dict:
     """ONCE-3DLanes layout: lanes as [x, y, z] lists in the camera frame, K as a 3x4."""
-    T = np.linalg.inv(image.T_out_camera)
-    lanes = [np.round(lane @ T[:3, :3].T + T[:3, 3], 4).tolist() for lane in image.lanes]
     K = np.hstack([calib.K, np.zeros((3, 1))])
-    return {'lanes': lanes, 'calibration': K.tolist(), 'stamp_ns': image.stamp_ns}
+    return {'lanes': [lane.tolist() for lane in _camera_lanes(image)],
+            'calibration': K.tolist(), 'stamp_ns': image.stamp_ns}
+
+
+def _once_sequence(args: argparse.Namespace) -> str:
+    """--once-dataset's sequence folder: IN_BAG's name."""
+    return re.sub(r'\s', '_', args.in_bag.resolve().name)
 
 
 def _check_inputs(args: argparse.Namespace, labels: dict[int, ImageLabels],
@@ -145,9 +164,13 @@ def _check_inputs(args: argparse.Namespace, labels: dict[int, ImageLabels],
 
 
 def _check_file_outputs(args: argparse.Namespace, labels: dict[int, ImageLabels]) -> None:
-    """--once-json and --plots: the files of the labels' stamps must be new or replaceable."""
+    """--once-json, --plots, --once-dataset: the files of the labels' stamps must be new or
+    replaceable."""
+    dataset = [] if args.once_dataset is None else [
+        (args.once_dataset / split / _once_sequence(args) / CAMERA, suffix, '--once-dataset')
+        for split, suffix in (('train', 'json'), (IMAGE_DIRS[0], 'jpg'))]
     for out_dir, suffix, option in ((args.once_json, 'json', '--once-json'),
-                                    (args.plots, 'png', '--plots')):
+                                    (args.plots, 'png', '--plots'), *dataset):
         if out_dir is None:
             continue
         if out_dir.exists() and not out_dir.is_dir():
@@ -173,8 +196,11 @@ def run(args: argparse.Namespace) -> int:
                           f'{max(image_stamps)} ns')
     once_dir = args.once_json
     _check_file_outputs(args, labels)
-    images = {}  # rgb of labelled images waiting to be drawn
-    wanted = set(labeler.stamps) if args.plots is not None else set()
+    if args.once_dataset is not None and not counts.get(IMAGE):
+        raise ConfigError(f'--once-dataset needs the images: {args.in_bag} has no {IMAGE}')
+    images = {}  # rgb of labelled images waiting to be drawn or written
+    wanted = set(labeler.stamps) if args.plots or args.once_dataset else set()
+    unwritten = 0  # --once-dataset: labelled images whose image message was missing
     topics = [args.points_topic] + ([IMAGE] if wanted and counts.get(IMAGE) else []) + \
         ([args.odom_topic] if args.lane_map else [])
     bar = tqdm(total=counts[args.points_topic], unit='sweep', desc='autolabel',
@@ -184,6 +210,7 @@ def run(args: argparse.Namespace) -> int:
         lane_map = _LaneMapWriter(bag, poses.frame_id) if args.lane_map else None
 
         def write(image: LabelledImage) -> None:
+            nonlocal unwritten
             if lane_map is not None:
                 lane_map.add(image)
             header = fam.header(image.stamp_ns, image.frame_id)
@@ -194,10 +221,16 @@ def run(args: argparse.Namespace) -> int:
                 once_dir.mkdir(parents=True, exist_ok=True)
                 (once_dir / f'{image.stamp_ns}.json').write_text(
                     json.dumps(_once_json(calib, image)) + '\n')
+            rgb = images.pop(image.stamp_ns, None)
             if args.plots is not None:
                 args.plots.mkdir(parents=True, exist_ok=True)
-                _plot(args.plots / f'{image.stamp_ns}.png', calib, image,
-                      images.pop(image.stamp_ns, None))
+                _plot(args.plots / f'{image.stamp_ns}.png', calib, image, rgb)
+            if args.once_dataset is not None and rgb is not None:
+                name = f'{_once_sequence(args)}/{CAMERA}/{image.stamp_ns}'
+                write_once(args.once_dataset, 'train', [CameraLaneSample(
+                    rgb, calib.K, _camera_lanes(image), name)])
+            elif args.once_dataset is not None:
+                unwritten += 1
 
         for topic, log_ns, msg in read_messages(args.in_bag, topics):
             if lane_map is not None and topic != IMAGE:
@@ -229,6 +262,8 @@ def run(args: argparse.Namespace) -> int:
         if c.images == 0:  # inside the writer: the bag is not kept
             raise ConfigError(f'no image could be labelled in 3D ({skipped})')
     made = '' if lane_map is None else f', lane map of {lane_map.lines} lines'
+    if unwritten:
+        made += f'; {unwritten} labelled images not in --once-dataset (no image message)'
     print(f'fhld autolabel: {c.images} images labelled in 3D, {c.lanes} lanes{made}, '
           f'{time.perf_counter() - start:.1f} s; {skipped}', file=sys.stderr)
     return 0

@@ -1,6 +1,7 @@
 """SALAD's training data: samples resampled to the virtual camera once and packed on disk, one
-shard per source (a simulated drive: `simulated_shard`; or any CameraLaneSample iterable:
-`write_shard`), then read with augmentation and turned into targets per draw.
+shard per simulated drive (`simulated_shard`) or per DATASET_SHARD_SAMPLES samples of a dataset
+on disk (`dataset_shards`: ONCE-3DLanes, OpenLane), then read with augmentation and turned into
+targets per draw.
 
 A shard (`<name>.npz`) holds `images` (N, H, W, 3) uint8, `points` (M, 3) float32 (every
 lane's points, optical frame), `lane_ends` (L,) int64 (each lane's end in points) and
@@ -9,8 +10,11 @@ and renamed, so an interrupted build leaves no half shard and a rerun skips what
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 from collections.abc import Iterable
+from itertools import islice
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +28,7 @@ from fhld_ros.salad.targets import lane_targets
 from fhld_ros.salad.virtual_camera import VirtualCamera
 
 SHARD_SUFFIX = '.npz'
+DATASET_SHARD_SAMPLES = 256  # ~94 MB of virtual-camera images per shard
 
 
 def to_virtual(sample: CameraLaneSample, camera: VirtualCamera) -> CameraLaneSample:
@@ -59,6 +64,28 @@ def simulated_shard(out_dir: Path, seed: int, frames: int, camera: VirtualCamera
         size = (3 * camera.width // 2, round(3 * camera.width // 2 * 9 / 16))
         write_shard(path, simulated_samples(seed, frames, size), camera)
     return path
+
+
+def dataset_shards(cache: Path, kind: str, source: str,
+                   samples: Iterable[CameraLaneSample], camera: VirtualCamera) -> list[Path]:
+    """A dataset's samples (kind: 'once', 'openlane'; source: what names it, e.g. its
+    resolved folder and split) packed DATASET_SHARD_SAMPLES to a shard as
+    <kind>-<digest of source>-<k>.npz. A finished set is recorded in <kind>-<digest>.json and
+    reused; an unfinished one is written again. A changed dataset needs another cache."""
+    prefix = f'{kind}-{hashlib.sha1(source.encode()).hexdigest()[:10]}'
+    index = cache / f'{prefix}.json'
+    if index.exists():
+        return [cache / name for name in json.loads(index.read_text())['shards']]
+    cache.mkdir(parents=True, exist_ok=True)
+    shards, count, it = [], 0, iter(samples)
+    while chunk := list(islice(it, DATASET_SHARD_SAMPLES)):
+        shards.append(cache / f'{prefix}-{len(shards):05d}{SHARD_SUFFIX}')
+        count += write_shard(shards[-1], chunk, camera)
+    if not count:
+        raise ValueError(f'{source}: no labelled images')
+    index.write_text(json.dumps({'source': source, 'samples': count,
+                                 'shards': [p.name for p in shards]}) + '\n')
+    return shards
 
 
 class ShardSamples:

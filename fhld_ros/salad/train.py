@@ -1,7 +1,11 @@
-"""`fhld salad-train OUT`: train SALAD on simulated camera drives (and any shards in --cache).
+"""`fhld salad-train OUT`: train SALAD on simulated camera drives, a user's ONCE-3DLanes or
+OpenLane data (--once, --openlane), or both (and any shards in --cache).
 
 Drives come from SALAD's training seeds (sim_source.salad_seeds), each its own camera (height,
-pitch, field of view, principal point), rendered once into OUT/cache (dataset.py). The row
+pitch, field of view, principal point), rendered once into OUT/cache (dataset.py); a
+dataset's images are resampled to the virtual camera once into the same cache (`--drives 0`:
+the dataset alone; `fhld autolabel --once-dataset` writes a drive's labelled images in the
+ONCE layout). The row
 shift and scale of the depth head (paper eq. 3) are measured on the training images before
 the first step and saved with the weights. Runs in slices: OUT/state.pt is written every
 --save-every steps, and --resume continues from it with the same draws; OUT/salad.pt, the
@@ -11,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import math
 import sys
 import time
@@ -25,9 +30,18 @@ from fhld_ros.errors import ConfigError
 from fhld_ros.salad.augment import SaladAugment
 from fhld_ros.salad.checkpoint import config_from_plain, load_salad, save_salad
 from fhld_ros.salad.config import SaladConfig
-from fhld_ros.salad.dataset import SHARD_SUFFIX, SaladDataset, ShardSamples, simulated_shard
+from fhld_ros.salad.dataset import (
+    SHARD_SUFFIX,
+    SaladDataset,
+    ShardSamples,
+    dataset_shards,
+    simulated_shard,
+)
 from fhld_ros.salad.losses import SaladCriterion
 from fhld_ros.salad.model import SaladNet
+from fhld_ros.salad.once_format import SPLITS as ONCE_SPLITS
+from fhld_ros.salad.once_format import read_once
+from fhld_ros.salad.openlane_format import read_openlane
 from fhld_ros.salad.sim_source import salad_seeds
 from fhld_ros.salad.targets import lane_targets, row_statistics
 
@@ -40,6 +54,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--cache', type=Path, help='shard folder (default OUT/cache)')
     parser.add_argument('--drives', type=int, default=200, help='simulated training drives')
     parser.add_argument('--frames', type=int, default=10, help='images per drive, 1 s apart')
+    parser.add_argument('--once', type=Path, metavar='ROOT',
+                        help='also train on an ONCE-3DLanes folder (its --once-split)')
+    parser.add_argument('--once-split', default='train', choices=ONCE_SPLITS)
+    parser.add_argument('--openlane', type=Path, metavar='ROOT',
+                        help='also train on an OpenLane folder (its --openlane-labels)')
+    parser.add_argument('--openlane-labels', type=Path, metavar='DIR',
+                        help='the training labels, e.g. ROOT/lane3d_1000/training (default: '
+                        'every lane3d* folder under ROOT)')
     parser.add_argument('--steps', type=int, default=6000, help='optimiser steps in all')
     parser.add_argument('--slice-steps', type=int, help='stop after this many (then --resume)')
     parser.add_argument('--batch', type=int, default=8)
@@ -68,6 +90,28 @@ def build_cache(cache: Path, drives: int, frames: int, cfg: SaladConfig, workers
         list(pool.map(simulated_shard, [cache] * len(seeds), seeds, [frames] * len(seeds),
                       [cfg.camera] * len(seeds)))
     print(f'rendered in {time.monotonic() - start:.0f} s', file=sys.stderr)
+
+
+def build_datasets(cache: Path, args: argparse.Namespace, cfg: SaladConfig) -> None:
+    """The shards of --once and --openlane (dataset.dataset_shards), once per dataset."""
+    if args.openlane_labels and not args.openlane:
+        raise ConfigError('--openlane-labels needs --openlane ROOT')
+    sources = []
+    if args.once:
+        sources.append(('once', f'{args.once.resolve()} {args.once_split}',
+                        lambda: read_once(args.once, args.once_split)))
+    if args.openlane:
+        labels = args.openlane_labels
+        sources.append(('openlane', f'{args.openlane.resolve()} '
+                        f'{labels.resolve() if labels else "lane3d*"}',
+                        lambda: read_openlane(args.openlane, labels)))
+    for kind, source, samples in sources:
+        print(f'packing {kind} {source} into {cache}', file=sys.stderr)
+        try:
+            shards = dataset_shards(cache, kind, source, samples(), cfg.camera)
+        except ValueError as exc:  # the readers name the file
+            raise ConfigError(f'--{kind}: {exc}') from None
+        print(f'{kind}: {len(shards)} shards', file=sys.stderr)
 
 
 def measure_rows(samples: ShardSamples, cfg: SaladConfig) -> SaladConfig:
@@ -115,6 +159,7 @@ def run(args: argparse.Namespace) -> int:
     cache = args.cache or args.out / 'cache'
     args.out.mkdir(parents=True, exist_ok=True)
     build_cache(cache, args.drives, args.frames, SaladConfig(), args.workers)
+    build_datasets(cache, args, SaladConfig())
     samples = ShardSamples(cache.glob(f'*{SHARD_SUFFIX}'))
     if not len(samples):
         raise ConfigError(f'no training images in {cache}')
@@ -158,6 +203,9 @@ def _save(args: argparse.Namespace, model: SaladNet, optimiser: torch.optim.Opti
     tmp = args.out / '.state.pt.tmp'
     torch.save(state, tmp)
     tmp.replace(args.out / 'state.pt')
+    cache = args.cache or args.out / 'cache'
+    datasets = [json.loads(p.read_text())['source'] for p in sorted(cache.glob('*.json'))]
     save_salad(args.out / 'salad.pt', model, state['command'],
                {'steps': step, 'images': images, 'drives': args.drives, 'frames': args.frames,
+                'datasets': datasets,
                 **{key: state[key] for key in ('init', 'init_steps') if key in state}})
