@@ -124,6 +124,9 @@ class TrainSection:
     eval_batch_size: int = documented(2, 'evaluation batch size', range=COUNT)
     score_threshold: float = documented(0.5, 'lane confidence the evaluation counts',
                                         range='[0, 1]')
+    freeze_batchnorm: bool = documented(False, 'BatchNorm layers normalise with their running '
+                                        'statistics and keep them (fine-tuning at small '
+                                        'batches)')
     init: str = documented('', "a checkpoint whose weights start the run (fine-tuning); '' = "
                            'random initialisation. Only the weights: the model section must '
                            'build the same layers; a resume ignores it')

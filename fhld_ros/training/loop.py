@@ -270,6 +270,10 @@ def train_step(run: Run, it: int, batch: dict, lr: float) -> dict[str, Tensor]:
         losses['loss'].backward()
     else:
         run.module.train()
+        if run.cfg.train.freeze_batchnorm:
+            for module in run.module.modules():
+                if isinstance(module, torch.nn.modules.batchnorm._BatchNorm):
+                    module.eval()
         outputs = run.model(raster, targets=batch['lanes'])
         losses = run.criterion(outputs, batch['lanes'], it)
         (losses['loss'] + graph_anchor(outputs)).backward()
