@@ -422,3 +422,18 @@ def test_train_init_starts_from_another_checkpoints_weights(tmp_path):
         assert torch.equal(value, module.state_dict()[key]), key
     with pytest.raises(ValueError, match='its layers differ from the model section'):
         init_weights(FhldDetector(dataclasses.replace(MODEL, local_hidden=16)), str(path))
+
+
+def test_freeze_batchnorm_keeps_the_running_statistics(caches, tmp_path):
+    """At small batches on a CPU a fine-tune normalises as the node will (running statistics)
+    and leaves them as they were; the weights still learn."""
+    for name, freeze in (('free', False), ('frozen', True)):
+        cfg = write_config(tmp_path / f'{name}.yaml', caches, freeze_batchnorm=freeze)
+        assert fhld(train_argv(cfg, tmp_path / name)) == 0
+    fresh = FhldDetector(MODEL).state_dict()  # the seed's initialisation, as both runs start
+    for name, freeze in (('free', False), ('frozen', True)):
+        state = load_payload(tmp_path / name / 'last.pt')['state_dict']
+        stats = [k for k in state if k.endswith(('running_mean', 'running_var'))]
+        assert stats and all(torch.equal(state[k], fresh[k]) for k in stats) == freeze, name
+        assert any(not torch.equal(state[k], fresh[k]) for k in state
+                   if k.endswith('conv.weight'))
