@@ -14,7 +14,13 @@ from fhld_ros.model.cell_targets import cell_targets
 from fhld_ros.model.config import FhldConfig
 from fhld_ros.model.curve import AdaptiveAxisCurve, FixedAxisCurve
 from fhld_ros.model.detector import Detections, FhldDetector, with_segment_ends
-from fhld_ros.model.inference import OnnxFeatures, TracedFeatures, serving_features
+from fhld_ros.model.inference import (
+    OnnxFeatures,
+    OnnxGraph,
+    TracedFeatures,
+    TracedGraph,
+    serving_features,
+)
 from fhld_ros.model.local_branch import LocalPrediction
 from fhld_ros.model.roi_align import roi_align
 from fhld_ros.model.targets import prepare_targets, to_metres, to_normalised
@@ -342,9 +348,9 @@ def test_serving_features_match_eager_and_give_the_same_lanes(runner):
 
 def test_serving_runtime_choice():
     model = FhldDetector(small_config()).eval()
-    assert isinstance(serving_features(model), OnnxFeatures)  # onnxruntime is a dependency
-    assert isinstance(serving_features(model, runtime='torchscript'), TracedFeatures)
-    assert isinstance(serving_features(model, device='cuda'), TracedFeatures)
+    assert isinstance(serving_features(model), OnnxGraph)  # onnxruntime is a dependency
+    assert isinstance(serving_features(model, runtime='torchscript'), TracedGraph)
+    assert isinstance(serving_features(model, device='cuda'), TracedGraph)
     with pytest.raises(ValueError, match='model_runtime'):
         DetectorParams(model_runtime='tensorrt')
     with pytest.raises(ValueError, match="needs device 'cpu'"):

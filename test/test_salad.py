@@ -256,3 +256,23 @@ def test_training_can_start_from_shipped_weights(tmp_path):
     moved = [not torch.equal(a, b) for a, b in zip(tuned.state_dict().values(),
                                                    shipped.state_dict().values())]
     assert any(moved)  # it trained from there
+
+
+@pytest.mark.parametrize('runtime', ['onnxruntime', 'torchscript'])
+def test_the_served_network_matches_eager_torch(runtime):
+    from fhld_ros.model.inference import OnnxGraph, TracedGraph
+
+    detector = SaladDetector(threads=1, runtime=runtime)
+    assert isinstance(detector.network, {'onnxruntime': OnnxGraph, 'torchscript': TracedGraph}[
+        runtime])
+    camera = detector.cfg.camera
+    x = torch.randint(0, 256, (1, 3, camera.height, camera.width), dtype=torch.uint8,
+                      generator=torch.Generator().manual_seed(0))
+    with torch.inference_mode():
+        eager = detector.model(x)
+    for served, want in zip(detector.network(x), eager):
+        torch.testing.assert_close(served, want, rtol=1e-4, atol=1e-4)
+    assert isinstance(SaladDetector(threads=1).network, OnnxGraph)  # 'auto': a dependency
+    with pytest.raises(ConfigError, match='model_runtime'):
+        from fhld_ros.salad.parameters import CameraParams
+        CameraParams(model_runtime='tensorrt')

@@ -1,9 +1,10 @@
 """`fhld bench camera` and `fhld bench camera_live`: SALAD, the camera detector, on 960x540
 images of a simulated drive (salad/sim_source.py, the fixed camera of seed BENCH_SEED).
 
-camera: medians (ms) over REPEATS runs of each stage as camera_lane_detector runs it, on the
-node's default torch threads (model_threads 0): camera_warp_ms (resampling to the virtual
-camera), camera_model_ms (the network), camera_decode_ms (maps -> 3D lanes, on the maps of the
+camera: medians (ms) over REPEATS runs of each stage as camera_lane_detector runs it, with the
+node's default model_threads and model_runtime: camera_warp_ms (resampling to the virtual
+camera), camera_model_ms (the network as served; camera_model_eager_ms: the same network in
+eager torch), camera_decode_ms (maps -> 3D lanes, on the maps of the
 image's own ground-truth lanes, so it costs what a real detection of them costs whatever the
 weights), and camera_e2e_ms_p50 / _p95: image message in -> the three /lanes messages out
 through CameraPipeline (decode, checks, SALAD, frames, ids, outline, serialisation).
@@ -105,10 +106,11 @@ def _bench_camera(sample: CameraLaneSample) -> dict[str, float | str]:
     warp_ms = time_median(lambda: cfg.camera.warp(image, k), repeats=REPEATS)
     x = torch.from_numpy(cfg.camera.warp(image, k)).permute(2, 0, 1)[None]
 
-    def forward() -> None:
+    def eager() -> None:
         with torch.inference_mode():
             detector.model(x)
-    model_ms = time_median(forward, repeats=REPEATS, warmup=3)
+    model_ms = time_median(lambda: detector.network(x), repeats=REPEATS, warmup=3)
+    eager_ms = time_median(eager, repeats=REPEATS, warmup=3)
     family = rosbags_family()
     pipeline = CameraPipeline(CameraParams(), detector)
     pipeline.receive_camera_info(camera_info_msg(family, family.header(0, 'camera'), *SIZE, k))
@@ -125,7 +127,9 @@ def _bench_camera(sample: CameraLaneSample) -> dict[str, float | str]:
     p50, p95 = np.percentile(e2e[3:], [50, 95])
     return {'camera_weights': weights, 'camera_image': f'{SIZE[0]}x{SIZE[1]}',
             'camera_torch_threads': float(torch.get_num_threads()),
+            'camera_model_runtime': type(detector.network).__name__,
             'camera_warp_ms': warp_ms, 'camera_model_ms': model_ms,
+            'camera_model_eager_ms': eager_ms,
             'camera_decode_ms': _decode_ms(sample, cfg),
             'camera_decode_lanes': float(len(sample.lanes)),
             'camera_e2e_ms_p50': float(p50), 'camera_e2e_ms_p95': float(p95),

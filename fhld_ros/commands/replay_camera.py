@@ -34,8 +34,8 @@ def replay_camera(in_bag: Path, out_bag: Path, params: CameraParams,
     check_output(out_bag, overwrite, inputs)  # before the model loads: fail fast
     counts = topic_counts(in_bag)
     require_topics(in_bag, counts, (image_topic, camera_info_topic))
-    pipeline = CameraPipeline(params, load_camera_detector(params.checkpoint,
-                                                           params.model_threads))
+    pipeline = CameraPipeline(params, load_camera_detector(
+        params.checkpoint, params.model_threads, params.model_runtime))
     lanes_topic = '/' + params.lanes_topic.strip('/')
     detections = 0
     with BagWriter(out_bag, overwrite, inputs) as writer:

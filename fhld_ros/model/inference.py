@@ -1,4 +1,5 @@
-"""Serving runtimes for FhldDetector.features: ONNX Runtime on CPU, TorchScript elsewhere.
+"""Serving runtimes for FhldDetector.features (and SALAD's network): ONNX Runtime on CPU,
+TorchScript elsewhere.
 
 In the node the model shares its Python process with the ROS executor. Eager PyTorch takes the
 GIL back between every op, and each time it can wait for the executor's Python loop; both
@@ -12,14 +13,15 @@ runtimes here run the whole graph in C++ without the GIL.
 - TracedFeatures (CUDA, or CPU without onnxruntime): a frozen TorchScript trace; freezing
   folds batch norms into convolutions.
 
-Outputs equal the eager ones to float rounding (test_model.py). Both are built for one raster
-shape on first use; another shape falls back to eager.
+Outputs equal the eager ones to float rounding (test_model.py, test_salad.py). Both are built
+for one input shape on first use; another shape falls back to eager.
 """
 from __future__ import annotations
 
 import importlib.util
 import io
 import warnings
+from collections.abc import Callable
 
 import torch
 from torch import Tensor, nn
@@ -38,56 +40,61 @@ class _Features(nn.Module):
         return self.model.features(raster)
 
 
-class _ShapeBound:
-    """Callable raster -> model.features(raster) through a graph built for the first shape."""
+class ShapeBoundGraph:
+    """Callable x -> module(x) (a tensor or a tuple of them) through a graph built for the first
+    input's shape; `check` (optional) refuses a bad first input before the graph is built."""
 
-    def __init__(self, model: FhldDetector) -> None:
-        self.model = model.eval()
+    def __init__(self, module: nn.Module, check: Callable[[Tensor], None] | None = None
+                 ) -> None:
+        self.module = module.eval()
+        self.check = check
         self.graph = None
         self.shape: tuple[int, ...] | None = None
 
-    def __call__(self, raster: Tensor) -> Features:
+    def __call__(self, x: Tensor) -> tuple[Tensor, ...]:
         with torch.no_grad():
             if self.graph is None:
-                self.model.check_input(raster)
+                if self.check is not None:
+                    self.check(x)
                 with warnings.catch_warnings():  # shape checks become constants: intended
                     warnings.simplefilter('ignore')
-                    self.graph = self._build(_Features(self.model).eval(), raster)
-                self.shape = tuple(raster.shape)
-            if tuple(raster.shape) != self.shape:
-                return self.model.features(raster)
-            return self._run(raster)
+                    self.graph = self._build(self.module, x)
+                self.shape = tuple(x.shape)
+            if tuple(x.shape) != self.shape:
+                return tuple(self.module(x))
+            return self._run(x)
 
-    def _build(self, module: nn.Module, raster: Tensor):
+    def _build(self, module: nn.Module, x: Tensor):
         raise NotImplementedError
 
-    def _run(self, raster: Tensor) -> Features:
+    def _run(self, x: Tensor) -> tuple[Tensor, ...]:
         raise NotImplementedError
 
 
-class TracedFeatures(_ShapeBound):
-    """model.features as a frozen TorchScript trace."""
+class TracedGraph(ShapeBoundGraph):
+    """The module as a frozen TorchScript trace."""
 
-    def _build(self, module: nn.Module, raster: Tensor) -> torch.jit.ScriptModule:
-        return torch.jit.freeze(torch.jit.trace(module, raster, check_trace=False))
+    def _build(self, module: nn.Module, x: Tensor) -> torch.jit.ScriptModule:
+        return torch.jit.freeze(torch.jit.trace(module, x, check_trace=False))
 
-    def _run(self, raster: Tensor) -> Features:
-        return self.graph(raster)
+    def _run(self, x: Tensor) -> tuple[Tensor, ...]:
+        return tuple(self.graph(x))
 
 
-class OnnxFeatures(_ShapeBound):
-    """model.features exported to ONNX (in memory) and run by ONNX Runtime on the CPU."""
+class OnnxGraph(ShapeBoundGraph):
+    """The module exported to ONNX (in memory) and run by ONNX Runtime on the CPU."""
 
-    def __init__(self, model: FhldDetector, threads: int = 0) -> None:
-        super().__init__(model)
+    def __init__(self, module: nn.Module, check: Callable[[Tensor], None] | None = None,
+                 threads: int = 0) -> None:
+        super().__init__(module, check)
         self.threads = threads
 
-    def _build(self, module: nn.Module, raster: Tensor):
+    def _build(self, module: nn.Module, x: Tensor):
         import onnxruntime
 
         model_bytes = io.BytesIO()
-        torch.onnx.export(module, (raster,), model_bytes, dynamo=False, opset_version=17,
-                          input_names=['raster'], output_names=['logits', 'curves', 'local'])
+        torch.onnx.export(module, (x,), model_bytes, dynamo=False, opset_version=17,
+                          input_names=['input'])
         options = onnxruntime.SessionOptions()
         options.intra_op_num_threads = max(self.threads, 0)  # 0: one per physical core
         options.inter_op_num_threads = 1
@@ -97,24 +104,43 @@ class OnnxFeatures(_ShapeBound):
         return onnxruntime.InferenceSession(model_bytes.getvalue(), options,
                                             providers=['CPUExecutionProvider'])
 
-    def _run(self, raster: Tensor) -> Features:
-        outputs = self.graph.run(None, {'raster': raster.numpy()})
-        return tuple(torch.from_numpy(out) for out in outputs)
+    def _run(self, x: Tensor) -> tuple[Tensor, ...]:
+        return tuple(torch.from_numpy(out) for out in self.graph.run(None, {'input': x.numpy()}))
 
 
-def serving_features(model: FhldDetector, device: str = 'cpu', runtime: str = 'auto',
-                     threads: int = 0) -> _ShapeBound:
-    """The features runner the node and `fhld replay` serve with.
+class TracedFeatures(TracedGraph):
+    """model.features as a frozen TorchScript trace."""
 
-    runtime (checked by DetectorParams): 'auto' is ONNX Runtime on the CPU when it is
-    installed, else TorchScript; 'onnxruntime' (CPU only) or 'torchscript'.
-    """
+    def __init__(self, model: FhldDetector) -> None:
+        super().__init__(_Features(model), model.check_input)
+
+
+class OnnxFeatures(OnnxGraph):
+    """model.features exported to ONNX and run by ONNX Runtime on the CPU."""
+
+    def __init__(self, model: FhldDetector, threads: int = 0) -> None:
+        super().__init__(_Features(model), model.check_input, threads)
+
+
+def serving_graph(module: nn.Module, device: str = 'cpu', runtime: str = 'auto',
+                  threads: int = 0, check: Callable[[Tensor], None] | None = None
+                  ) -> ShapeBoundGraph:
+    """How a served network runs: 'auto' is ONNX Runtime on the CPU when it is installed, else
+    TorchScript; 'onnxruntime' (CPU only) or 'torchscript'. ValueError when 'onnxruntime' is
+    asked for and not installed."""
     missing = _missing_onnx_packages()
     if runtime == 'onnxruntime' and missing:
         raise ValueError(f"model_runtime 'onnxruntime' needs the {missing} package(s)")
     if runtime == 'onnxruntime' or (runtime == 'auto' and device == 'cpu' and not missing):
-        return OnnxFeatures(model, threads)
-    return TracedFeatures(model)
+        return OnnxGraph(module, check, threads)
+    return TracedGraph(module, check)
+
+
+def serving_features(model: FhldDetector, device: str = 'cpu', runtime: str = 'auto',
+                     threads: int = 0) -> ShapeBoundGraph:
+    """The features runner the node and `fhld replay` serve with (runtime checked by
+    DetectorParams; serving_graph)."""
+    return serving_graph(_Features(model), device, runtime, threads, model.check_input)
 
 
 def _missing_onnx_packages() -> str:

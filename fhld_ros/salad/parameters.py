@@ -35,6 +35,9 @@ class CameraParams:
     model_threads: int = documented(
         0, 'CPU threads for the model; 0 = auto: 1 (two OpenMP threads beside the executor and '
         'other work on a 2-core CPU ran the model up to 40x slower)', range='[0, 1024]')
+    model_runtime: str = documented(
+        'auto', "how the network runs: 'auto' (ONNX Runtime when installed, else TorchScript), "
+        "'onnxruntime' or 'torchscript'", choices=('auto', 'onnxruntime', 'torchscript'))
     rate_hz: float = documented(
         10.0, 'detection rate on image stamps: an image at least 0.9 / rate_hz newer than the '
         'last detected one is detected, the others are skipped', range='(0, 1000]')
