@@ -13,8 +13,7 @@ camera frame) per image; --once-dataset ROOT a SALAD training set in that layout
 labelled image with its lanes (`fhld salad-train --once ROOT`). --lane-map makes OUT_BAG a
 training bag as well (data/bag_source.py): the drive's /points and /odom copied, and on
 /lanes_gt one message, stamped with the earliest sweep, holding the lane map of all images
-(annotation/lane_map.py).
-OUT_BAG and the files follow bagio's output rule.
+(annotation/lane_map.py). OUT_BAG and the files follow bagio's output rule.
 """
 from __future__ import annotations
 

@@ -83,8 +83,10 @@ def dataset_shards(cache: Path, kind: str, source: str,
         count += write_shard(shards[-1], chunk, camera)
     if not count:
         raise ValueError(f'{source}: no labelled images')
-    index.write_text(json.dumps({'source': source, 'samples': count,
-                                 'shards': [p.name for p in shards]}) + '\n')
+    tmp = index.with_name(f'.{index.name}.tmp')
+    tmp.write_text(json.dumps({'source': source, 'samples': count,
+                               'shards': [p.name for p in shards]}) + '\n')
+    os.replace(tmp, index)
     return shards
 
 

@@ -5,11 +5,11 @@ Drives come from SALAD's training seeds (sim_source.salad_seeds), each its own c
 pitch, field of view, principal point), rendered once into OUT/cache (dataset.py); a
 dataset's images are resampled to the virtual camera once into the same cache (`--drives 0`:
 the dataset alone; `fhld autolabel --once-dataset` writes a drive's labelled images in the
-ONCE layout). The row
-shift and scale of the depth head (paper eq. 3) are measured on the training images before
-the first step and saved with the weights. Runs in slices: OUT/state.pt is written every
---save-every steps, and --resume continues from it with the same draws; OUT/salad.pt, the
-weights alone with their config and provenance, is written at the end of every slice.
+ONCE layout). The row shift and scale of the depth head (paper eq. 3) are measured on the
+training images before the first step and saved with the weights. Runs in slices:
+OUT/state.pt is written every --save-every steps, and --resume continues from it with the same
+draws; OUT/salad.pt, the weights alone with their config and provenance (and the datasets of
+the cache), is written at the end of every slice.
 """
 from __future__ import annotations
 
