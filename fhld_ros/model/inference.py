@@ -5,12 +5,12 @@ In the node the model shares its Python process with the ROS executor. Eager PyT
 GIL back between every op, and each time it can wait for the executor's Python loop; both
 runtimes here run the whole graph in C++ without the GIL.
 
-- OnnxFeatures (CPU): the graph exported to ONNX in memory and run by ONNX Runtime (by default
+- OnnxGraph (CPU): the graph exported to ONNX in memory and run by ONNX Runtime (by default
   one thread per core). Its workers do not spin, so between detections they leave the cores to
   the ROS executor, where torch's OpenMP threads would compete with it. The timings of both
   runtimes are in docs/performance.md; how ONNX Runtime came to serve the model, in
   docs/history.md.
-- TracedFeatures (CUDA, or CPU without onnxruntime): a frozen TorchScript trace; freezing
+- TracedGraph (CUDA, or CPU without onnxruntime): a frozen TorchScript trace; freezing
   folds batch norms into convolutions.
 
 Outputs equal the eager ones to float rounding (test_model.py, test_salad.py). Both are built
