@@ -157,9 +157,16 @@ def test_experiments_are_apart_from_the_shipped_recipe_and_the_starting_points()
         'distill_stem5.yaml', 'train_cpu.yaml', 'train_gpu.yaml'}
 
 
+def _with_bases(path: Path) -> str:
+    """The text of a config file and of every file in its `base:` chain."""
+    text = path.read_text()
+    base = re.search(r'^base:\s*(\S+)', text, re.MULTILINE)
+    return text + (_with_bases(path.parent / base.group(1)) if base else '')
+
+
 @pytest.mark.parametrize('path', TRAINING_CONFIGS, ids=lambda p: p.name)
 def test_every_training_config_loads(path, tmp_path, monkeypatch):
-    real_bags = sorted(set(re.findall(r'out/realbags/(\w+)', path.read_text())))
+    real_bags = sorted(set(re.findall(r'out/realbags/(\w+)', _with_bases(path))))
     if real_bags:  # hand-labelled real sweeps as bags: `fhld realscans --write-bags`
         if not real_scans.DEFAULT_DIR.is_dir():
             pytest.skip(f'{path.name} trains on real sweeps in ../shared/real_scans (absent)')

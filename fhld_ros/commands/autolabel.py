@@ -193,7 +193,6 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f'no label file names an image of {args.in_bag}: label stamps '
                           f'{min(labels)}..{max(labels)} ns, images {min(image_stamps)}..'
                           f'{max(image_stamps)} ns')
-    once_dir = args.once_json
     _check_file_outputs(args, labels)
     if args.once_dataset is not None and not counts.get(IMAGE):
         raise ConfigError(f'--once-dataset needs the images: {args.in_bag} has no {IMAGE}')
@@ -216,20 +215,7 @@ def run(args: argparse.Namespace) -> int:
             bag.write('/lanes', 'visualization_msgs/msg/MarkerArray', image.stamp_ns,
                       lanes_to_marker_array(fam, header, image.lanes, np.ones(len(image.lanes)),
                                             unique_marker_ids(image.ids), image.outline))
-            if once_dir is not None:  # made with the first file: a failed run leaves none
-                once_dir.mkdir(parents=True, exist_ok=True)
-                (once_dir / f'{image.stamp_ns}.json').write_text(
-                    json.dumps(_once_json(calib, image)) + '\n')
-            rgb = images.pop(image.stamp_ns, None)
-            if args.plots is not None:
-                args.plots.mkdir(parents=True, exist_ok=True)
-                _plot(args.plots / f'{image.stamp_ns}.png', calib, image, rgb)
-            if args.once_dataset is not None and rgb is not None:
-                name = f'{_once_sequence(args)}/{CAMERA}/{image.stamp_ns}'
-                write_once(args.once_dataset, 'train', [CameraLaneSample(
-                    rgb, calib.K, _camera_lanes(image), name)])
-            elif args.once_dataset is not None:
-                unwritten += 1
+            unwritten += not _write_files(args, calib, image, images.pop(image.stamp_ns, None))
 
         for topic, log_ns, msg in read_messages(args.in_bag, topics):
             if lane_map is not None and topic != IMAGE:
@@ -266,6 +252,28 @@ def run(args: argparse.Namespace) -> int:
     print(f'fhld autolabel: {c.images} images labelled in 3D, {c.lanes} lanes{made}, '
           f'{time.perf_counter() - start:.1f} s; {skipped}', file=sys.stderr)
     return 0
+
+
+def _write_files(args: argparse.Namespace, calib: CameraCalibration, image: LabelledImage,
+                 rgb: np.ndarray | None) -> bool:
+    """One labelled image's --once-json, --plots and --once-dataset files (each folder made
+    with its first file: a failed run leaves none); False when --once-dataset lacks its image
+    (rgb None: no image message at its stamp)."""
+    if args.once_json is not None:
+        args.once_json.mkdir(parents=True, exist_ok=True)
+        (args.once_json / f'{image.stamp_ns}.json').write_text(
+            json.dumps(_once_json(calib, image)) + '\n')
+    if args.plots is not None:
+        args.plots.mkdir(parents=True, exist_ok=True)
+        _plot(args.plots / f'{image.stamp_ns}.png', calib, image, rgb)
+    if args.once_dataset is None:
+        return True
+    if rgb is None:
+        return False
+    name = f'{_once_sequence(args)}/{CAMERA}/{image.stamp_ns}'
+    write_once(args.once_dataset, 'train', [CameraLaneSample(rgb, calib.K, _camera_lanes(image),
+                                                             name)])
+    return True
 
 
 class _LaneMapWriter:
