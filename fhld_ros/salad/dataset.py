@@ -90,6 +90,11 @@ def dataset_shards(cache: Path, kind: str, source: str,
     return shards
 
 
+def dataset_sources(cache: Path) -> list[str]:
+    """The sources of the finished datasets packed in cache (dataset_shards' indexes)."""
+    return [json.loads(p.read_text())['source'] for p in sorted(cache.glob('*.json'))]
+
+
 class ShardSamples:
     """Every sample of a set of shards, in memory (images stay uint8)."""
 

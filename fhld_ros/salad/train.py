@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
 import sys
 import time
@@ -35,6 +34,7 @@ from fhld_ros.salad.dataset import (
     SaladDataset,
     ShardSamples,
     dataset_shards,
+    dataset_sources,
     simulated_shard,
 )
 from fhld_ros.salad.losses import SaladCriterion
@@ -169,6 +169,10 @@ def run(args: argparse.Namespace) -> int:
     if 'optimiser' in state:
         optimiser.load_state_dict(state['optimiser'])
     dataset = SaladDataset(samples, model.cfg.camera, SaladAugment())
+    # what salad.pt records besides its step count: the same for every save of this slice
+    meta = {'images': len(samples), 'drives': args.drives, 'frames': args.frames,
+            'datasets': dataset_sources(cache),
+            **{key: state[key] for key in ('init', 'init_steps') if key in state}}
     step, stop = state['step'], min(args.steps, state['step'] + (args.slice_steps or args.steps))
     print(f'{len(samples)} images; steps {step}..{stop} of {args.steps}', file=sys.stderr)
     model.train()
@@ -190,22 +194,17 @@ def run(args: argparse.Namespace) -> int:
                 print(f'step {step} ' + ' '.join(f'{k} {float(v.detach()):.4f}' for k, v in
                                                  losses.items()), file=sys.stderr, flush=True)
             if step % args.save_every == 0 or step == stop:
-                _save(args, model, optimiser, state, step, len(samples))
+                _save(args, model, optimiser, state, step, meta)
             if step >= stop:
                 break
     return 0
 
 
 def _save(args: argparse.Namespace, model: SaladNet, optimiser: torch.optim.Optimizer,
-          state: dict, step: int, images: int) -> None:
+          state: dict, step: int, meta: dict) -> None:
     state.update(step=step, model=model.state_dict(), optimiser=optimiser.state_dict(),
                  config=dataclasses.asdict(model.cfg))
     tmp = args.out / '.state.pt.tmp'
     torch.save(state, tmp)
     tmp.replace(args.out / 'state.pt')
-    cache = args.cache or args.out / 'cache'
-    datasets = [json.loads(p.read_text())['source'] for p in sorted(cache.glob('*.json'))]
-    save_salad(args.out / 'salad.pt', model, state['command'],
-               {'steps': step, 'images': images, 'drives': args.drives, 'frames': args.frames,
-                'datasets': datasets,
-                **{key: state[key] for key in ('init', 'init_steps') if key in state}})
+    save_salad(args.out / 'salad.pt', model, state['command'], {'steps': step, **meta})
