@@ -97,6 +97,27 @@ def test_perfect_maps_decode_to_the_lanes_they_were_made_from():
         assert lane[0, 2] < 10 and lane[-1, 2] > 50  # near to far, up to the range
 
 
+@pytest.mark.parametrize('height', [1.2, 1.5])
+def test_side_lanes_that_touch_in_the_image_are_decoded_apart(height):
+    # seen from a low camera, the lines of the outer lanes lie almost along the image rows and
+    # touch near the horizon, at other depths: one point per run of cells lay between them
+    z = np.linspace(3.0, 70.0, 1000)
+    lanes = [np.column_stack([np.full_like(z, x0), np.full_like(z, height), z])
+             for x0 in (-12.25, -8.75, -5.25, -1.75, 1.75)]
+    targets = lane_targets(lanes, CAMERA)
+    cfg = _config_for(targets.depth[None], targets.depth_mask[None])
+    shift, scale = np.array(cfg.row_shift)[:, None], np.array(cfg.row_scale)[:, None]
+    decoded, _ = decode(targets.seg * 0.9, np.concatenate(
+        [targets.offsets, ((targets.depth - shift) / scale)[None]]), cfg)
+    assert len(decoded) == len(lanes)
+    trees = [cKDTree(lane) for lane in lanes]
+    nearest = [min(range(len(lanes)), key=lambda i: trees[i].query(lane)[0].mean())
+               for lane in decoded]
+    assert sorted(nearest) == list(range(len(lanes)))
+    for lane, i in zip(decoded, nearest):
+        assert trees[i].query(lane)[0].mean() < 0.05
+
+
 def test_a_lane_continues_to_the_far_edge_of_its_top_cell_row_and_no_further():
     cfg = SaladConfig(camera=CAMERA)
     z = np.arange(5.0, 30.01, 0.5)
