@@ -19,6 +19,7 @@ from fhld_ros.salad.detector import SaladDetector
 from fhld_ros.salad.evaluate import score
 from fhld_ros.salad.losses import SaladCriterion
 from fhld_ros.salad.model import SaladNet
+from fhld_ros.salad.perfect_maps import HEADS, PerfectMaps
 from fhld_ros.salad.sample import CameraLaneSample
 from fhld_ros.salad.targets import lane_targets, row_statistics
 from fhld_ros.salad.virtual_camera import VirtualCamera
@@ -209,6 +210,24 @@ def test_detector_and_scoring_run_on_any_camera(tmp_path):
         assert all(r['median_m'] is None for r in rows['by_range'].values())
         json.dumps(rows, allow_nan=False)
     assert rows['tau_0.30']['gt'] == 4 and rows['tau_0.30']['images'] == 1
+
+
+def test_perfect_maps_score_what_the_decoding_makes_of_the_targets(tmp_path):
+    # an untrained network finds nothing; with its heads replaced by the GT lanes' targets the
+    # same images score what the decoding alone allows, each head's share one at a time
+    lanes = [lane[(lane[:, 2] >= 10.0) & (lane[:, 2] <= 55.0)] for lane in _road()]  # in view
+    targets = lane_targets(lanes, CAMERA)
+    save_salad(tmp_path / 'salad.pt',
+               SaladNet(_config_for(targets.depth[None], targets.depth_mask[None])), 'test')
+    detector = SaladDetector(tmp_path / 'salad.pt')
+    image = np.full((CAMERA.height, CAMERA.width, 3), 90, dtype=np.uint8)
+    samples = [CameraLaneSample(image, CAMERA.intrinsics, lanes, 'grey')]
+    every = PerfectMaps(detector, HEADS)
+    assert score(every, every.over(samples))['tau_0.15']['F1'] == 100.0
+    no_depth = PerfectMaps(detector, ['seg', 'offsets'])
+    assert score(no_depth, no_depth.over(samples))['tau_0.15']['F1'] < 100.0
+    with pytest.raises(ValueError, match='unknown heads'):
+        PerfectMaps(detector, ['depth', 'colour'])
 
 
 def test_the_error_by_range_is_where_the_lanes_are_off():

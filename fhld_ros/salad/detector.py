@@ -35,17 +35,22 @@ class SaladDetector:
         self.timings_ms: dict[str, float] = {}
 
     @torch.inference_mode()
-    def __call__(self, image: np.ndarray, intrinsics: np.ndarray
-                 ) -> tuple[list[np.ndarray], np.ndarray]:
-        """Lanes ((N, 3) optical frame, metres, near to far) and their scores."""
+    def maps(self, image: np.ndarray, intrinsics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The network's maps of one image: lane probability (h, w) and spatial (3, h, w)."""
         start = time.perf_counter()
         warped = self.cfg.camera.warp(np.asarray(image), np.asarray(intrinsics))
         x = torch.from_numpy(warped).permute(2, 0, 1)[None]
         warp_done = time.perf_counter()
         seg, spatial = self.network(x)
-        net_done = time.perf_counter()
-        lanes, scores = decode(torch.sigmoid(seg[0, 0]).numpy(), spatial[0].numpy(), self.cfg)
         self.timings_ms = {'warp_ms': (warp_done - start) * 1e3,
-                           'model_ms': (net_done - warp_done) * 1e3,
-                           'decode_ms': (time.perf_counter() - net_done) * 1e3}
+                           'model_ms': (time.perf_counter() - warp_done) * 1e3}
+        return torch.sigmoid(seg[0, 0]).numpy(), spatial[0].numpy()
+
+    def __call__(self, image: np.ndarray, intrinsics: np.ndarray
+                 ) -> tuple[list[np.ndarray], np.ndarray]:
+        """Lanes ((N, 3) optical frame, metres, near to far) and their scores."""
+        prob, spatial = self.maps(image, intrinsics)
+        start = time.perf_counter()
+        lanes, scores = decode(prob, spatial, self.cfg)
+        self.timings_ms['decode_ms'] = (time.perf_counter() - start) * 1e3
         return lanes, scores

@@ -6,7 +6,8 @@ Rows as in the paper's Table 2: F1, precision, recall and the CD error of the tr
 at tau_CD 0.15, 0.30 and 0.50 m (the paper's definition: top-view IoU >= 0.3, then the
 unilateral chamfer distance), the released evaluator's figures at 0.30 m ("official"), and the
 error by range ("by_range": over the GT points of every compared pair, the distance to the
-predicted lane, per 10 m of forward distance; where the far range loses it).
+predicted lane, per 10 m of forward distance; where the far range loses it). `--perfect`
+replaces heads by their targets (perfect_maps.py), to see which head the F1 is lost in.
 Lanes are compared in a camera-centred top view (metrics.py takes x forward, y left, z up:
 the optical frame turned, not moved).
 """
@@ -34,6 +35,7 @@ from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT
 from fhld_ros.salad.detector import SaladDetector
 from fhld_ros.salad.once_format import read_once
 from fhld_ros.salad.openlane_format import read_openlane
+from fhld_ros.salad.perfect_maps import HEADS, PerfectMaps
 from fhld_ros.salad.sample import CameraLaneSample
 from fhld_ros.salad.sim_source import salad_seeds, simulated_samples
 
@@ -54,6 +56,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--once', type=Path, metavar='ROOT', help='an ONCE-3DLanes folder')
     parser.add_argument('--once-split', default='val')
     parser.add_argument('--openlane', type=Path, metavar='ROOT', help='an OpenLane folder')
+    parser.add_argument('--perfect', nargs='+', choices=HEADS, default=[], metavar='HEAD',
+                        help='replace these heads (seg, offsets, depth) by the targets of the '
+                             "images' GT lanes: what F1 would be with them perfect")
     parser.add_argument('--json', action='store_true', help='print one JSON object last')
 
 
@@ -126,6 +131,7 @@ def run(args: argparse.Namespace) -> int:
     if args.drives < 0 or args.frames < 1:
         raise ConfigError('--drives must be >= 0 and --frames >= 1')
     detector = SaladDetector(args.checkpoint)
+    perfect = PerfectMaps(detector, args.perfect) if args.perfect else None
     sources = {}
     if args.drives:
         split = 'val' if args.validation else 'test'
@@ -139,8 +145,10 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError('nothing to score: --drives 0 and no --once / --openlane')
     results = {}
     for name, samples in sources.items():
-        results[name] = score(detector, samples)
-        _print(name, results[name])
+        results[name] = (score(perfect, perfect.over(samples)) if perfect
+                         else score(detector, samples))
+        _print(f'{name} (perfect {", ".join(args.perfect)})' if perfect else name,
+               results[name])
     if args.json:
         json.dump(results, sys.stdout)
         print()
