@@ -86,10 +86,8 @@ def test_perfect_maps_decode_to_the_lanes_they_were_made_from():
     lanes = _road()
     targets = lane_targets(lanes, CAMERA)
     cfg = _config_for(targets.depth[None], targets.depth_mask[None])
-    shift, scale = np.array(cfg.row_shift)[:, None], np.array(cfg.row_scale)[:, None]
-    residual = (targets.depth - shift) / scale
-    decoded, scores = decode(targets.seg * 0.9, np.concatenate([targets.offsets,
-                                                                residual[None]]), cfg)
+    decoded, scores = decode(targets.seg * 0.9, np.concatenate(
+        [targets.offsets, cfg.depth_residual(targets.depth)[None]]), cfg)
     assert len(decoded) == 4 and np.allclose(scores, 0.9)
     trees = [cKDTree(lane) for lane in lanes]
     for lane in decoded:
@@ -107,9 +105,8 @@ def test_side_lanes_that_touch_in_the_image_are_decoded_apart(height):
              for x0 in (-12.25, -8.75, -5.25, -1.75, 1.75)]
     targets = lane_targets(lanes, CAMERA)
     cfg = _config_for(targets.depth[None], targets.depth_mask[None])
-    shift, scale = np.array(cfg.row_shift)[:, None], np.array(cfg.row_scale)[:, None]
     decoded, _ = decode(targets.seg * 0.9, np.concatenate(
-        [targets.offsets, ((targets.depth - shift) / scale)[None]]), cfg)
+        [targets.offsets, cfg.depth_residual(targets.depth)[None]]), cfg)
     assert len(decoded) == len(lanes)
     trees = [cKDTree(lane) for lane in lanes]
     nearest = [min(range(len(lanes)), key=lambda i: trees[i].query(lane)[0].mean())

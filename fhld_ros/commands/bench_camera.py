@@ -81,8 +81,7 @@ def _weights(sample: CameraLaneSample, folder: Path) -> tuple[Path, str]:
 def _decode_ms(sample: CameraLaneSample, cfg: SaladConfig) -> float:
     """decode() on the maps of the image's own lanes (as a model that found them gives)."""
     targets = lane_targets(sample.lanes, cfg.camera)
-    shift, scale = np.asarray(cfg.row_shift)[:, None], np.asarray(cfg.row_scale)[:, None]
-    spatial = np.concatenate([targets.offsets, ((targets.depth - shift) / scale)[None]])
+    spatial = np.concatenate([targets.offsets, cfg.depth_residual(targets.depth)[None]])
     prob = targets.seg * 0.9
     return time_median(lambda: decode(prob, spatial, cfg), repeats=REPEATS, warmup=2)
 

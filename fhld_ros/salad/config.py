@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from fhld_ros.dataclass_dict import check_fields, documented
 from fhld_ros.errors import ConfigError
 from fhld_ros.salad.virtual_camera import VirtualCamera
@@ -44,6 +46,11 @@ class SaladConfig:
     def grid(self) -> tuple[int, int]:
         """(width, height) of the output maps."""
         return self.camera.width // STRIDE, self.camera.height // STRIDE
+
+    def depth_residual(self, depth: np.ndarray) -> np.ndarray:
+        """dz of an (h, w) depth map (metres): the network's depth output that decodes to it."""
+        shift = np.asarray(self.row_shift)[:, None]
+        return (np.asarray(depth) - shift) / np.asarray(self.row_scale)[:, None]
 
     def validate(self, where: str = '') -> None:
         """ConfigError naming every field out of its declared range, and the rules between

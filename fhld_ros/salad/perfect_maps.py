@@ -46,7 +46,6 @@ class PerfectMaps:
         if 'offsets' in self.heads:  # targets exist at lane cells only
             spatial[:2] = np.where(lane, target.offsets, spatial[:2])
         if 'depth' in self.heads:
-            shift = np.asarray(cfg.row_shift)[:, None]
-            residual = (target.depth - shift) / np.asarray(cfg.row_scale)[:, None]
-            spatial[2] = np.where(target.depth_mask, residual, spatial[2])
+            spatial[2] = np.where(target.depth_mask, cfg.depth_residual(target.depth),
+                                  spatial[2])
         return decode(prob, spatial, cfg)
