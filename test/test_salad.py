@@ -116,6 +116,24 @@ def test_side_lanes_that_touch_in_the_image_are_decoded_apart(height):
         assert trees[i].query(lane)[0].mean() < 0.05
 
 
+def test_a_far_side_line_that_runs_along_the_image_rows_is_decoded():
+    # a line 12 m to the side seen from 30 m on lies almost along the image rows: a few cell
+    # rows hold all of it, and one point per row was too few to make a lane of it
+    z = np.linspace(3.0, 70.0, 1000)
+    lanes = [np.column_stack([np.full_like(z, x0), np.full_like(z, 1.5), z])
+             for x0 in (-1.75, 1.75)]
+    far = z >= 30.0
+    lanes.append(np.column_stack([np.full(far.sum(), 12.0), np.full(far.sum(), 1.5), z[far]]))
+    targets = lane_targets(lanes, CAMERA)
+    cfg = _config_for(targets.depth[None], targets.depth_mask[None])
+    decoded, _ = decode(targets.seg * 0.9, np.concatenate(
+        [targets.offsets, cfg.depth_residual(targets.depth)[None]]), cfg)
+    side = [lane for lane in decoded if np.median(lane[:, 0]) > 6.0]
+    assert len(decoded) == 3 and len(side) == 1
+    assert np.abs(side[0][:, 0] - 12.0).max() < 0.3
+    assert side[0][0, 2] < 36.0 and side[0][-1, 2] > 55.0
+
+
 def test_a_lane_continues_to_the_far_edge_of_its_top_cell_row_and_no_further():
     cfg = SaladConfig(camera=CAMERA)
     z = np.arange(5.0, 30.01, 0.5)

@@ -2,16 +2,18 @@
 by the row shift and scale, back-projected with the virtual camera's intrinsics, grouped into
 lanes and fitted.
 
-A lane point stands for its run of cells, so a fitted lane ends at the mean depth of its
-topmost cell row; near the horizon one cell row spans tens of metres (45-68 m for a camera
-1.5 m up), so each lane is continued on its trend to the far edge of that row, where the image
-still shows it (`extend_to_row_edge`).
+Grouping happens in 3D, slice by slice of depth from near to far: every lane cell is
+back-projected on its own, the cells of a depth slice (8 % of its depth deep) are cut into
+points where they lie laterally farther apart than the link reach, and a point joins the lane
+whose lateral position (x, metres) it continues. Far away lanes converge in the image and
+their cells touch, but in 3D they stay metres apart. Slices, not image rows: the lines of
+outer lanes and of curves, seen from a camera 1-2 m up, run almost along the image rows near
+the horizon, one cell row holding tens of metres of them and touching the next lane's, and one
+point per row lost them (docs/salad.md, "Where the F1 goes").
 
-Grouping happens in 3D, row by row from the bottom of the image up: each row's runs of lane
-cells, cut where touching cells lie on different lanes in 3D, are one point each, and a point
-joins the lane whose lateral position (x, metres) it continues. Far away lanes converge in
-the image and their cells touch, but in 3D they stay metres apart, so grouping there does not
-merge them as connected components would.
+A fitted lane ends at its farthest point; near the horizon one cell row spans tens of metres
+(45-68 m for a camera 1.5 m up), so each lane is continued on its trend to the far edge of its
+topmost cell row, where the image still shows it (`extend_to_row_edge`).
 """
 from __future__ import annotations
 
@@ -22,111 +24,102 @@ from fhld_ros.salad.config import STRIDE, SaladConfig
 MIN_DEPTH_M = 1.0
 LINK_M = 0.8  # a point continues a lane within this lateral distance (metres) ...
 LINK_FRACTION = 0.04  # ... or this share of its depth, when that is more
-DEPTH_JUMP = 0.1  # touching cells whose depths differ by this share can be two lanes
-GAP_ROWS = 8  # a lane waits this many rows for its next point (dashes, occlusions)
+SLICE_FRACTION = 0.08  # a depth slice is this share of its depth deep
+GAP_SLICES = 5  # a lane waits this many slices (~47 % more depth) for its next point
 HEADING_M = 3.0  # a lane's lateral slope is measured over its last this many metres
-MIN_POINTS = 4
+MIN_POINTS = 6
 MIN_LENGTH_M = 2.0
 SAMPLE_STEP_M = 0.5  # fitted lanes are sampled every this much depth
 MAX_DEGREE = 3
 TAIL_M = 10.0  # a lane is continued on its straight-line trend over its last this many metres
+X, Y, Z, PROB, TOP_ROW, SLICE = range(6)  # the columns of lane_points
 
 
 def lane_points(prob: np.ndarray, spatial: np.ndarray, cfg: SaladConfig) -> np.ndarray:
-    """(P, 5) points (x, y, z, probability, row) in the optical frame, one per piece of a row's
-    run of lane cells, bottom rows first (see `_pieces`)."""
+    """(P, 6) points (x, y, z, probability, top cell row, depth slice) in the optical frame,
+    near slices first, each the probability-weighted mean of a slice's lane cells that lie
+    within the link reach of each other laterally."""
     mask = prob > cfg.seg_threshold
-    rows, cols = np.nonzero(mask)  # row-major: a row's cells left to right
-    if not len(rows):
-        return np.zeros((0, 5))
-    p = prob[mask]
+    rows, cols = np.nonzero(mask)
     cam = cfg.camera
     u = (cols + spatial[0][mask] + 0.5) * STRIDE - 0.5
     v = (rows + spatial[1][mask] + 0.5) * STRIDE - 0.5
     z = np.asarray(cfg.row_shift)[rows] + np.asarray(cfg.row_scale)[rows] * spatial[2][mask]
-    # each cell back-projected on its own, then averaged: a cell row near the horizon spans
-    # tens of metres of a lane, and the mean of u times the mean of z is not on it
+    # each cell back-projected on its own: a cell row near the horizon spans tens of metres of
+    # a lane, and the mean of u times the mean of z is not on it
     x, y = (u - cam.cx) * z / cam.focal, (v - cam.cy) * z / cam.focal
-    piece = _pieces(rows, cols, x, z)
-    count = np.bincount(piece, weights=p)
-    cells = np.bincount(piece)
+    keep = (z > MIN_DEPTH_M) & (z < cfg.max_depth_m)
+    if not keep.any():
+        return np.zeros((0, 6))
+    x, y, z, p, rows = x[keep], y[keep], z[keep], prob[mask][keep], rows[keep]
+    depth_slice = np.floor(np.log(z / MIN_DEPTH_M) / np.log1p(SLICE_FRACTION)).astype(int)
+    order = np.lexsort((x, depth_slice))
+    x, y, z, p, rows, depth_slice = (a[order] for a in (x, y, z, p, rows, depth_slice))
+    cut = (np.diff(depth_slice) != 0) | (np.diff(x) > np.maximum(LINK_M, LINK_FRACTION * z[1:]))
+    first = np.concatenate([[True], cut])
+    piece = np.cumsum(first) - 1
+    weight = np.bincount(piece, weights=p)
+    top_row = np.full(piece[-1] + 1, np.inf)
+    np.minimum.at(top_row, piece, rows)
 
     def mean(values: np.ndarray) -> np.ndarray:
-        return np.bincount(piece, weights=values * p) / count
+        return np.bincount(piece, weights=values * p) / weight
 
-    out = np.column_stack([mean(x), mean(y), mean(z), count / cells,
-                           np.bincount(piece, weights=rows) / cells])
-    keep = (out[:, 2] > MIN_DEPTH_M) & (out[:, 2] < cfg.max_depth_m)
-    out = out[keep]
-    return out[np.argsort(-out[:, 4], kind='stable')]
-
-
-def _pieces(rows: np.ndarray, cols: np.ndarray, x: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """Piece index of each lane cell (row-major order). A piece is a run of touching cells in a
-    row, cut where the next cell lies on another lane: its point is laterally farther than the
-    link reach and at another depth. The lines of outer lanes, seen from a camera 1-2 m up, lie
-    almost along the image rows and touch their neighbours near the horizon, but not in 3D;
-    one mean point for such a run lay between the lanes and lost both (on the validation
-    images' own targets, F1 at 0.3 m was 65.8 with one point per run, 76.5 with pieces;
-    docs/salad.md, "Where the F1 goes")."""
-    far = np.maximum(z[1:], z[:-1])
-    other_lane = ((np.abs(x[1:] - x[:-1]) > np.maximum(LINK_M, LINK_FRACTION * far))
-                  & (np.abs(z[1:] - z[:-1]) > DEPTH_JUMP * far))
-    same = (rows[1:] == rows[:-1]) & (cols[1:] == cols[:-1] + 1) & ~other_lane
-    return np.cumsum(np.concatenate([[True], ~same])) - 1
+    return np.column_stack([mean(x), mean(y), mean(z), weight / np.bincount(piece), top_row,
+                            depth_slice[first]])
 
 
 def group_points(points: np.ndarray) -> list[np.ndarray]:
-    """Indices of the points of each lane (see the module doc). A loop over rows, each with a
-    few runs: the cells themselves were reduced to runs without Python loops."""
+    """Indices of the points of each lane (see the module doc). A loop over depth slices, each
+    with a few points: the cells themselves were reduced to points without Python loops."""
     lanes: list[list[int]] = []
-    last_row: list[float] = []
-    for row in np.unique(points[:, 4])[::-1]:
-        here = np.flatnonzero(points[:, 4] == row)
-        alive = [i for i, r in enumerate(last_row) if r - row <= GAP_ROWS]
+    last_slice: list[float] = []
+    for depth_slice in np.unique(points[:, SLICE]):
+        here = np.flatnonzero(points[:, SLICE] == depth_slice)
+        alive = [i for i, s in enumerate(last_slice) if depth_slice - s <= GAP_SLICES]
         used_points: set[int] = set()
         used_lanes: set[int] = set()
         if alive:
             ends = np.array([_heading(points[lanes[i]]) for i in alive])  # (x, z, dx/dz)
-            reach = np.maximum(LINK_M, LINK_FRACTION * points[here, 2])
-            ahead = ends[None, :, 0] + ends[None, :, 2] * (points[here, 2][:, None]
+            reach = np.maximum(LINK_M, LINK_FRACTION * points[here, Z])
+            ahead = ends[None, :, 0] + ends[None, :, 2] * (points[here, Z][:, None]
                                                           - ends[None, :, 1])
-            cost = np.abs(points[here, 0][:, None] - ahead)
+            cost = np.abs(points[here, X][:, None] - ahead)
             for flat in np.argsort(cost, axis=None):  # greedy, nearest pairs first
                 a, b = divmod(int(flat), len(alive))
                 if cost[a, b] > reach[a] or a in used_points or b in used_lanes:
                     continue
                 lanes[alive[b]].append(int(here[a]))
-                last_row[alive[b]] = row
+                last_slice[alive[b]] = depth_slice
                 used_points.add(a)
                 used_lanes.add(b)
         for a in range(len(here)):
             if a not in used_points:
                 lanes.append([int(here[a])])
-                last_row.append(row)
+                last_slice.append(depth_slice)
     return [np.array(lane) for lane in lanes]
 
 
 def _heading(lane: np.ndarray) -> tuple[float, float, float]:
     """A lane's last point (x, z) and its lateral slope dx/dz over the last HEADING_M."""
-    x, z = lane[-1, 0], lane[-1, 2]
-    back = np.flatnonzero(lane[:, 2] <= z - HEADING_M)
+    x, z = lane[-1, X], lane[-1, Z]
+    back = np.flatnonzero(lane[:, Z] <= z - HEADING_M)
     if not len(back):
         return x, z, 0.0
     i = back[-1]
-    return x, z, (x - lane[i, 0]) / (z - lane[i, 2])
+    return x, z, (x - lane[i, X]) / (z - lane[i, Z])
 
 
 def fit_lane(points: np.ndarray) -> np.ndarray | None:
     """x(z) and y(z) polynomials through a lane's points (probability-weighted), sampled
     near to far; None for too few points or too short a lane."""
-    z = points[:, 2]
+    z = points[:, Z]
     if len(points) < MIN_POINTS or np.ptp(z) < MIN_LENGTH_M:
         return None
     degree = min(MAX_DEGREE, len(points) // 3)
-    weight = np.sqrt(points[:, 3])
-    fx = np.polynomial.Polynomial.fit(z, points[:, 0], degree, w=weight)
-    fy = np.polynomial.Polynomial.fit(z, points[:, 1], degree, w=weight)
+    weight = np.sqrt(points[:, PROB])
+    fx = np.polynomial.Polynomial.fit(z, points[:, X], degree, w=weight)
+    fy = np.polynomial.Polynomial.fit(z, points[:, Y], degree, w=weight)
     zs = np.append(np.arange(z.min(), z.max(), SAMPLE_STEP_M), z.max())
     return np.column_stack([fx(zs), fy(zs), zs])
 
@@ -156,8 +149,8 @@ def decode(prob: np.ndarray, spatial: np.ndarray, cfg: SaladConfig
     lanes, scores = [], []
     for index in group_points(points):
         lane = fit_lane(points[index])
-        score = float(points[index, 3].mean())
+        score = float(points[index, PROB].mean())
         if lane is not None and score >= cfg.score_threshold:
-            lanes.append(extend_to_row_edge(lane, points[index, 4].min(), cfg))
+            lanes.append(extend_to_row_edge(lane, points[index, TOP_ROW].min(), cfg))
             scores.append(score)
     return lanes, np.asarray(scores, dtype=np.float64)
