@@ -320,8 +320,8 @@ def test_the_served_network_matches_eager_torch(runtime):
     detector = SaladDetector(threads=1, runtime=runtime)
     assert isinstance(detector.network, {'onnxruntime': OnnxGraph, 'torchscript': TracedGraph}[
         runtime])
-    camera = detector.cfg.camera
-    x = torch.randint(0, 256, (1, 3, camera.height, camera.width), dtype=torch.uint8,
+    camera = detector.cfg.camera  # a batch of two: the image and its mirror (flip_average)
+    x = torch.randint(0, 256, (2, 3, camera.height, camera.width), dtype=torch.uint8,
                       generator=torch.Generator().manual_seed(0))
     with torch.inference_mode():
         eager = detector.model(x)
@@ -331,3 +331,17 @@ def test_the_served_network_matches_eager_torch(runtime):
     with pytest.raises(ConfigError, match='model_runtime'):
         from fhld_ros.salad.parameters import CameraParams
         CameraParams(model_runtime='tensorrt')
+
+
+def test_the_flip_average_sees_an_image_and_its_mirror_alike():
+    image = np.random.default_rng(0).integers(0, 256, (CAMERA.height, CAMERA.width, 3),
+                                              dtype=np.uint8)
+    for flip_average in (True, False):
+        detector = SaladDetector(threads=1, flip_average=flip_average)
+        prob, spatial = detector.maps(image, CAMERA.intrinsics)
+        prob_m, spatial_m = detector.maps(np.ascontiguousarray(image[:, ::-1]),
+                                          CAMERA.intrinsics)
+        mirrored = spatial[:, :, ::-1] * np.array([-1.0, 1.0, 1.0])[:, None, None]
+        same = (np.allclose(prob_m, prob[:, ::-1], atol=1e-5)
+                and np.allclose(spatial_m, mirrored, atol=1e-5))
+        assert same == flip_average  # one pass alone is not mirror-symmetric

@@ -2,18 +2,20 @@
 images of a simulated drive (salad/sim_source.py, the fixed camera of seed BENCH_SEED).
 
 camera: medians (ms) over REPEATS runs of each stage as camera_lane_detector runs it, with the
-node's default model_threads and model_runtime: camera_warp_ms (resampling to the virtual
-camera), camera_model_ms (the network as served; camera_model_eager_ms: the same network in
-eager torch), camera_decode_ms (maps -> 3D lanes, on the maps of the
-image's own ground-truth lanes, so it costs what a real detection of them costs whatever the
-weights), and camera_e2e_ms_p50 / _p95: image message in -> the three /lanes messages out
-through CameraPipeline (decode, checks, SALAD, frames, ids, outline, serialisation).
+node's default model_threads and model_runtime, and flip_average as
+FHLD_BENCH_CAMERA_FLIP_AVERAGE says (default 1, the node's default; 0: one pass):
+camera_warp_ms (resampling to the virtual camera), camera_model_ms (the network as served, on
+the image and its mirror with flip_average; camera_model_eager_ms: the same network in eager
+torch), camera_decode_ms (maps -> 3D lanes, on the maps of the image's own ground-truth lanes,
+so it costs what a real detection of them costs whatever the weights), and camera_e2e_ms_p50 /
+_p95: image message in -> the three /lanes messages out through CameraPipeline (decode,
+checks, SALAD, frames, ids, outline, serialisation).
 
 camera_live: the node as its own process over DDS (loopback, the project's profile) with its
-default parameters, fed one camera_info, then images and camera_info at 10 Hz on the wall clock
-for FHLD_BENCH_CAMERA_SECONDS (default 20): latency = /lanes arrival - image publish, an image
-whose stamp never comes back on /lanes is dropped, and the node's own counters (overtaken, lost
-by DDS) and stage medians from its /diagnostics.
+default parameters (flip_average as above), fed one camera_info, then images and camera_info
+at 10 Hz on the wall clock for FHLD_BENCH_CAMERA_SECONDS (default 20): latency = /lanes
+arrival - image publish, an image whose stamp never comes back on /lanes is dropped, and the
+node's own counters (overtaken, lost by DDS) and stage medians from its /diagnostics.
 
 Both use the shipped fhld_ros/checkpoints/salad.pt; where it is absent an untrained model of
 the shipped config (SaladConfig's defaults, row statistics of the bench image) stands in, and
@@ -52,6 +54,7 @@ BENCH_SEED = 4_000_123  # a held-out SALAD seed (sim_source.salad_seeds('test') 
 SIZE = (960, 540)
 REPEATS = 30
 SECONDS = float(os.environ.get('FHLD_BENCH_CAMERA_SECONDS', '20'))
+FLIP_AVERAGE = os.environ.get('FHLD_BENCH_CAMERA_FLIP_AVERAGE', '1') != '0'
 RATE_HZ = 10.0
 START_NS = 1_700_000_000_000_000_000
 NODE_START_TIMEOUT_SEC = 90.0
@@ -99,11 +102,13 @@ def bench_camera() -> dict[str, float | str]:
 def _bench_camera(sample: CameraLaneSample) -> dict[str, float | str]:
     with tempfile.TemporaryDirectory() as folder:
         checkpoint, weights = _weights(sample, Path(folder))
-        detector = load_camera_detector(str(checkpoint))
+        detector = load_camera_detector(str(checkpoint), flip_average=FLIP_AVERAGE)
     cfg = detector.cfg
     image, k = sample.image, sample.intrinsics
     warp_ms = time_median(lambda: cfg.camera.warp(image, k), repeats=REPEATS)
     x = torch.from_numpy(cfg.camera.warp(image, k)).permute(2, 0, 1)[None]
+    if FLIP_AVERAGE:  # the batch the network is served: the image and its mirror
+        x = torch.cat([x, x.flip(-1)])
 
     def eager() -> None:
         with torch.inference_mode():
@@ -111,7 +116,7 @@ def _bench_camera(sample: CameraLaneSample) -> dict[str, float | str]:
     model_ms = time_median(lambda: detector.network(x), repeats=REPEATS, warmup=3)
     eager_ms = time_median(eager, repeats=REPEATS, warmup=3)
     family = rosbags_family()
-    pipeline = CameraPipeline(CameraParams(), detector)
+    pipeline = CameraPipeline(CameraParams(flip_average=FLIP_AVERAGE), detector)
     pipeline.receive_camera_info(camera_info_msg(family, family.header(0, 'camera'), *SIZE, k))
     msg = image_to_msg(family, family.header(0, 'camera'), image)
     e2e, lanes = [], []
@@ -127,6 +132,7 @@ def _bench_camera(sample: CameraLaneSample) -> dict[str, float | str]:
     return {'camera_weights': weights, 'camera_image': f'{SIZE[0]}x{SIZE[1]}',
             'camera_torch_threads': float(torch.get_num_threads()),
             'camera_model_runtime': type(detector.network).__name__,
+            'camera_flip_average': float(FLIP_AVERAGE),
             'camera_warp_ms': warp_ms, 'camera_model_ms': model_ms,
             'camera_model_eager_ms': eager_ms,
             'camera_decode_ms': _decode_ms(sample, cfg),
@@ -180,7 +186,8 @@ def bench_camera_live(seconds: float = SECONDS) -> dict[str, float | str]:
     with tempfile.TemporaryDirectory() as folder:
         checkpoint, weights = _weights(sample, Path(folder))
         node = subprocess.Popen([sys.executable, '-m', 'fhld_ros.ros.camera_lane_detector',
-                                 '--ros-args', '-p', f'checkpoint:={checkpoint}'],
+                                 '--ros-args', '-p', f'checkpoint:={checkpoint}',
+                                 '-p', f'flip_average:={str(FLIP_AVERAGE).lower()}'],
                                 env=dict(os.environ), stdout=subprocess.DEVNULL,
                                 stderr=subprocess.DEVNULL)
         context = rclpy.Context()

@@ -45,7 +45,8 @@ class CameraLaneDetectorNode(Node):
         self.params = declare_params(self, CameraParams)
         self.pipeline = CameraPipeline(
             self.params, load_camera_detector(
-                self.params.checkpoint, self.params.model_threads, self.params.model_runtime))
+                self.params.checkpoint, self.params.model_threads, self.params.model_runtime,
+                self.params.flip_average))
         self.get_logger().info(f'parameters: {self.params}')
         self.lock = threading.Lock()  # the pipeline: input callbacks vs taking an image
         self.detecting = threading.Lock()

@@ -103,14 +103,14 @@ class ImageIntake:
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
-def load_camera_detector(checkpoint: str = '', threads: int = 0, runtime: str = 'auto'
-                         ) -> SaladDetector:
+def load_camera_detector(checkpoint: str = '', threads: int = 0, runtime: str = 'auto',
+                         flip_average: bool = True) -> SaladDetector:
     """SaladDetector of `checkpoint` ('' = the shipped weights) on `threads` CPU threads
-    (0 = AUTO_THREADS) and `runtime`; ConfigError naming the file when it is missing or
-    unusable."""
+    (0 = AUTO_THREADS), `runtime` and `flip_average`; ConfigError naming the file when it is
+    missing or unusable."""
     try:
         return SaladDetector(checkpoint or DEFAULT_SALAD_CHECKPOINT, threads or AUTO_THREADS,
-                             runtime)
+                             runtime, flip_average)
     except ConfigError as exc:
         if checkpoint:
             raise

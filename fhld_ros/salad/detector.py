@@ -1,7 +1,13 @@
 """SaladDetector: one camera image and its intrinsics in, 3D lanes in the optical frame out
 (resample to the virtual camera, the network, decode). The network runs as the LiDAR model's
 backbone does (model/inference.py: ONNX Runtime on the CPU, 13.5 against 25.5 ms in eager torch
-on one thread of the 2-core development machine, docs/performance.md)."""
+on one thread of the 2-core development machine, docs/performance.md).
+
+With flip_average the network also sees the image mirrored (one batch of two), and the two
+maps are averaged: the virtual camera's principal point is on the vertical centre line, so
+the mirror is exact, and it was trained on (augment.flip). On the validation images F1 at
+tau_CD 0.3 went from 44.2 to 47.3: the depth of one pass scatters, and the mean of two
+scatters less (docs/salad.md)."""
 from __future__ import annotations
 
 import os
@@ -18,10 +24,11 @@ from fhld_ros.salad.decode import decode
 
 class SaladDetector:
     """runtime: 'auto' (ONNX Runtime when installed, else TorchScript), 'onnxruntime' or
-    'torchscript'; threads: the network's CPU threads (0: the runtime's default)."""
+    'torchscript'; threads: the network's CPU threads (0: the runtime's default);
+    flip_average: average the maps of the image and its mirror image (see the module doc)."""
 
     def __init__(self, checkpoint: str | os.PathLike = DEFAULT_SALAD_CHECKPOINT,
-                 threads: int = 0, runtime: str = 'auto') -> None:
+                 threads: int = 0, runtime: str = 'auto', flip_average: bool = True) -> None:
         if threads:
             torch.set_num_threads(threads)
         self.model, self.info = load_salad(checkpoint)
@@ -30,8 +37,10 @@ class SaladDetector:
             self.network = serving_graph(self.model, 'cpu', runtime, threads)
         except ValueError as exc:
             raise ConfigError(str(exc)) from exc
+        self.flip_average = flip_average
         camera = self.cfg.camera  # the graph is built now, not on the first image (~1 s)
-        self.network(torch.zeros(1, 3, camera.height, camera.width, dtype=torch.uint8))
+        self.network(torch.zeros(1 + flip_average, 3, camera.height, camera.width,
+                                 dtype=torch.uint8))
         self.timings_ms: dict[str, float] = {}
 
     @torch.inference_mode()
@@ -40,11 +49,20 @@ class SaladDetector:
         start = time.perf_counter()
         warped = self.cfg.camera.warp(np.asarray(image), np.asarray(intrinsics))
         x = torch.from_numpy(warped).permute(2, 0, 1)[None]
+        if self.flip_average:
+            x = torch.cat([x, x.flip(-1)])
         warp_done = time.perf_counter()
         seg, spatial = self.network(x)
+        prob = torch.sigmoid(seg[:, 0])
+        if self.flip_average:  # the mirror's maps mirrored back: du changes sign
+            mirrored = spatial[1].flip(-1) * torch.tensor([-1.0, 1.0, 1.0]).view(3, 1, 1)
+            prob = 0.5 * (prob[0] + prob[1].flip(-1))
+            spatial = 0.5 * (spatial[0] + mirrored)
+        else:
+            prob, spatial = prob[0], spatial[0]
         self.timings_ms = {'warp_ms': (warp_done - start) * 1e3,
                            'model_ms': (time.perf_counter() - warp_done) * 1e3}
-        return torch.sigmoid(seg[0, 0]).numpy(), spatial[0].numpy()
+        return prob.numpy(), spatial.numpy()
 
     def __call__(self, image: np.ndarray, intrinsics: np.ndarray
                  ) -> tuple[list[np.ndarray], np.ndarray]:

@@ -59,6 +59,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--perfect', nargs='+', choices=HEADS, default=[], metavar='HEAD',
                         help='replace these heads (seg, offsets, depth) by the targets of the '
                              "images' GT lanes: what F1 would be with them perfect")
+    parser.add_argument('--no-flip-average', dest='flip_average', action='store_false',
+                        help='one network pass per image, not the mean with its mirror image')
     parser.add_argument('--json', action='store_true', help='print one JSON object last')
 
 
@@ -130,7 +132,7 @@ def _print(name: str, rows: dict[str, dict]) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.drives < 0 or args.frames < 1:
         raise ConfigError('--drives must be >= 0 and --frames >= 1')
-    detector = SaladDetector(args.checkpoint)
+    detector = SaladDetector(args.checkpoint, flip_average=args.flip_average)
     perfect = PerfectMaps(detector, args.perfect) if args.perfect else None
     sources = {}
     if args.drives:

@@ -38,6 +38,9 @@ class CameraParams:
     model_runtime: str = documented(
         'auto', "how the network runs: 'auto' (ONNX Runtime when installed, else TorchScript), "
         "'onnxruntime' or 'torchscript'", choices=('auto', 'onnxruntime', 'torchscript'))
+    flip_average: bool = documented(
+        True, 'average the network maps of the image and its mirror image (one batch of two: '
+        'more accurate depth, twice the network time); false = one pass')
     rate_hz: float = documented(
         10.0, 'detection rate on image stamps: an image at least 0.9 / rate_hz newer than the '
         'last detected one is detected, the others are skipped', range='(0, 1000]')
