@@ -1,7 +1,7 @@
 """SaladDetector: one camera image and its intrinsics in, 3D lanes in the optical frame out
 (resample to the virtual camera, the network, decode). The network runs as the LiDAR model's
-backbone does (model/inference.py: ONNX Runtime on the CPU, 13.5 against 25.5 ms in eager torch
-on one thread of the 2-core development machine, docs/performance.md).
+backbone does (model/inference.py: ONNX Runtime on the CPU, 12.3 against 22.2 ms in eager torch
+for one image on one thread of the 2-core development machine, docs/performance.md).
 
 With flip_average the network also sees the image mirrored (one batch of two), and the two
 maps are averaged: the virtual camera's principal point is on the vertical centre line, so
@@ -39,8 +39,8 @@ class SaladDetector:
             raise ConfigError(str(exc)) from exc
         self.flip_average = flip_average
         camera = self.cfg.camera  # the graph is built now, not on the first image (~1 s)
-        self.network(torch.zeros(1 + flip_average, 3, camera.height, camera.width,
-                                 dtype=torch.uint8))
+        batch = 2 if flip_average else 1  # the graph is bound to the shape it is built for
+        self.network(torch.zeros(batch, 3, camera.height, camera.width, dtype=torch.uint8))
         self.timings_ms: dict[str, float] = {}
 
     @torch.inference_mode()
