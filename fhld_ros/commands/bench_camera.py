@@ -106,9 +106,7 @@ def _bench_camera(sample: CameraLaneSample) -> dict[str, float | str]:
     cfg = detector.cfg
     image, k = sample.image, sample.intrinsics
     warp_ms = time_median(lambda: cfg.camera.warp(image, k), repeats=REPEATS)
-    x = torch.from_numpy(cfg.camera.warp(image, k)).permute(2, 0, 1)[None]
-    if FLIP_AVERAGE:  # the batch the network is served: the image and its mirror
-        x = torch.cat([x, x.flip(-1)])
+    x = detector.batch(cfg.camera.warp(image, k))  # as served: with its mirror, if flip_average
 
     def eager() -> None:
         with torch.inference_mode():

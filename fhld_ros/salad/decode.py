@@ -35,6 +35,11 @@ TAIL_M = 10.0  # a lane is continued on its straight-line trend over its last th
 X, Y, Z, PROB, TOP_ROW, SLICE = range(6)  # the columns of lane_points
 
 
+def link_reach(z: np.ndarray) -> np.ndarray:
+    """How far (metres, laterally) a point at depth z may lie from a lane and still be on it."""
+    return np.maximum(LINK_M, LINK_FRACTION * z)
+
+
 def lane_points(prob: np.ndarray, spatial: np.ndarray, cfg: SaladConfig) -> np.ndarray:
     """(P, 6) points (x, y, z, probability, top cell row, depth slice) in the optical frame,
     near slices first, each the probability-weighted mean of a slice's lane cells that lie
@@ -55,7 +60,7 @@ def lane_points(prob: np.ndarray, spatial: np.ndarray, cfg: SaladConfig) -> np.n
     depth_slice = np.floor(np.log(z / MIN_DEPTH_M) / np.log1p(SLICE_FRACTION)).astype(int)
     order = np.lexsort((x, depth_slice))
     x, y, z, p, rows, depth_slice = (a[order] for a in (x, y, z, p, rows, depth_slice))
-    cut = (np.diff(depth_slice) != 0) | (np.diff(x) > np.maximum(LINK_M, LINK_FRACTION * z[1:]))
+    cut = (np.diff(depth_slice) != 0) | (np.diff(x) > link_reach(z[1:]))
     first = np.concatenate([[True], cut])
     piece = np.cumsum(first) - 1
     weight = np.bincount(piece, weights=p)
@@ -81,7 +86,7 @@ def group_points(points: np.ndarray) -> list[np.ndarray]:
         used_lanes: set[int] = set()
         if alive:
             ends = np.array([_heading(points[lanes[i]]) for i in alive])  # (x, z, dx/dz)
-            reach = np.maximum(LINK_M, LINK_FRACTION * points[here, Z])
+            reach = link_reach(points[here, Z])
             ahead = ends[None, :, 0] + ends[None, :, 2] * (points[here, Z][:, None]
                                                           - ends[None, :, 1])
             cost = np.abs(points[here, X][:, None] - ahead)

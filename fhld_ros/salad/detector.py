@@ -21,6 +21,8 @@ from fhld_ros.model.inference import serving_graph
 from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT, load_salad
 from fhld_ros.salad.decode import decode
 
+MIRROR_SIGN = torch.tensor([-1.0, 1.0, 1.0]).view(3, 1, 1)  # du, dv, dz of a mirrored map
+
 
 class SaladDetector:
     """runtime: 'auto' (ONNX Runtime when installed, else TorchScript), 'onnxruntime' or
@@ -39,23 +41,20 @@ class SaladDetector:
             raise ConfigError(str(exc)) from exc
         self.flip_average = flip_average
         camera = self.cfg.camera  # the graph is built now, not on the first image (~1 s)
-        batch = 2 if flip_average else 1  # the graph is bound to the shape it is built for
-        self.network(torch.zeros(batch, 3, camera.height, camera.width, dtype=torch.uint8))
+        # the graph is bound to the shape it is built for: that of batch()
+        self.network(self.batch(np.zeros((camera.height, camera.width, 3), dtype=np.uint8)))
         self.timings_ms: dict[str, float] = {}
 
     @torch.inference_mode()
     def maps(self, image: np.ndarray, intrinsics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The network's maps of one image: lane probability (h, w) and spatial (3, h, w)."""
         start = time.perf_counter()
-        warped = self.cfg.camera.warp(np.asarray(image), np.asarray(intrinsics))
-        x = torch.from_numpy(warped).permute(2, 0, 1)[None]
-        if self.flip_average:
-            x = torch.cat([x, x.flip(-1)])
+        x = self.batch(self.cfg.camera.warp(np.asarray(image), np.asarray(intrinsics)))
         warp_done = time.perf_counter()
         seg, spatial = self.network(x)
         prob = torch.sigmoid(seg[:, 0])
         if self.flip_average:  # the mirror's maps mirrored back: du changes sign
-            mirrored = spatial[1].flip(-1) * torch.tensor([-1.0, 1.0, 1.0]).view(3, 1, 1)
+            mirrored = spatial[1].flip(-1) * MIRROR_SIGN
             prob = 0.5 * (prob[0] + prob[1].flip(-1))
             spatial = 0.5 * (spatial[0] + mirrored)
         else:
@@ -63,6 +62,12 @@ class SaladDetector:
         self.timings_ms = {'warp_ms': (warp_done - start) * 1e3,
                            'model_ms': (time.perf_counter() - warp_done) * 1e3}
         return prob.numpy(), spatial.numpy()
+
+    def batch(self, warped: np.ndarray) -> torch.Tensor:
+        """The network's input for one virtual-camera image (H, W, 3) uint8: (1, 3, H, W), or
+        with flip_average (2, 3, H, W), the image and its mirror."""
+        x = torch.from_numpy(warped).permute(2, 0, 1)[None]
+        return torch.cat([x, x.flip(-1)]) if self.flip_average else x
 
     def __call__(self, image: np.ndarray, intrinsics: np.ndarray
                  ) -> tuple[list[np.ndarray], np.ndarray]:
