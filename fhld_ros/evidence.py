@@ -18,10 +18,16 @@ dark seam and a bare curb, where the layout looks like a lane but no paint is (d
 the test is a ratio: the 95th percentile of the mean intensities of the observed cells within
 PAINT_HALF_WIDTH_M of the lane, against the median of the cells 0.35-1 m to each side that lie
 at the lane's height (curbs and sidewalks are not the road). Both sides must fall short of it by
-min_contrast. A lane with too few observed cells on it, or beside it on both sides, is kept:
-no evidence either way (the blind ring of a single sweep, a lane at the window's edge).
+min_contrast. A worn edge line a few decimetres inside a light verge or a concrete edge fails
+that test (the verge is brighter than the worn paint) and is a stripe all the same: so a lane
+is also kept when it stands out by STRIPE_FACTOR x min_contrast from the road right beside it
+(0.2-0.3 m) on both sides, which the false lanes above, edges of a brighter surface, do not. A
+lane with too few observed cells on it, or beside it on both sides, is kept: no evidence either
+way (the blind ring of a single sweep, a lane at the window's edge).
 """
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 
@@ -31,12 +37,19 @@ INTENSITY_CHANNEL, DENSITY_CHANNEL, MIN_HEIGHT_CHANNEL = 0, 1, 3
 PAINT_STEP_M = 0.1  # the lane is sampled this often along its length
 PAINT_HALF_WIDTH_M = 0.12  # on the lane: paint is 0.1-0.2 m wide, the lane a few cm off it
 ROAD_BESIDE_M = (0.35, 1.0)  # the road surface on each side, clear of the paint
+RIGHT_BESIDE_M = (0.2, 0.3)  # the road between the paint and a verge or shoulder beyond it
+# a stripe against the road right beside it must stand out by this x min_contrast: the false
+# lanes on the real sweeps read <= 1.46 there, the worn simulated lines beside a light verge
+# that it keeps 2.0-3.4 (validation seeds)
+STRIPE_FACTOR = 1.25
 LEVEL_M = 0.05  # a cell beside the lane is road when its lowest return is this close in height
 PERCENTILE = 95.0  # dashed lines: paint covers a quarter of a lane's length, or less
 MIN_CELLS = 10  # fewer observed cells on the lane (or on a side): no evidence either way
-# lateral offsets sampled at each point: 7 across the paint, 8 on the road to each side
+# lateral offsets sampled at each point: 7 across the paint, 3 right beside it and 8 on the
+# road to each side
+_BESIDE = np.concatenate([np.linspace(*RIGHT_BESIDE_M, 3), np.linspace(*ROAD_BESIDE_M, 8)])
 _OFFSETS = np.concatenate([np.linspace(-PAINT_HALF_WIDTH_M, PAINT_HALF_WIDTH_M, 7),
-                           -np.linspace(*ROAD_BESIDE_M, 8), np.linspace(*ROAD_BESIDE_M, 8)])
+                           -_BESIDE, _BESIDE])
 
 
 def _row_prefix(raster: np.ndarray) -> np.ndarray:
@@ -138,48 +151,68 @@ def _quantile(values: np.ndarray, q: float) -> float:
     return float(part[lo] + (part[hi] - part[lo]) * (pos - lo))
 
 
-def _contrast(values: np.ndarray, z: np.ndarray, offset: np.ndarray) -> float:
-    """paint_contrast from one lane's observed cells."""
+def _contrast(values: np.ndarray, z: np.ndarray, offset: np.ndarray) -> tuple[float, float]:
+    """paint_contrasts from one lane's observed cells."""
     on = np.abs(offset) <= PAINT_HALF_WIDTH_M
     if np.count_nonzero(on) < MIN_CELLS:
-        return float('nan')
-    road = ~on & (np.abs(z - _quantile(z[on], 0.5)) < LEVEL_M)
+        return float('nan'), float('nan')
+    top = _quantile(values[on], PERCENTILE / 100)
+    level = np.abs(z - _quantile(z[on], 0.5)) < LEVEL_M
+    right_beside = np.abs(offset) < ROAD_BESIDE_M[0]
+    return (_against_sides(top, values, offset, level & ~on & ~right_beside, any),
+            _against_sides(top, values, offset, level & ~on & right_beside, all))
+
+
+def _against_sides(top: float, values: np.ndarray, offset: np.ndarray, road: np.ndarray,
+                   need: Callable[[list[bool]], bool]) -> float:
+    """top / the brighter side's median of the road cells; NaN unless need() of the two sides
+    has MIN_CELLS (any: one side will do; all: both sides must show)."""
     sides = [values[road & (offset < 0)], values[road & (offset > 0)]]
-    level = [_quantile(side, 0.5) for side in sides if side.size >= MIN_CELLS]
-    if not level or max(level) <= 0:
+    shown = [side.size >= MIN_CELLS for side in sides]
+    if not need(shown):
         return float('nan')
-    return _quantile(values[on], PERCENTILE / 100) / max(level)
+    level = max(_quantile(side, 0.5) for side, ok in zip(sides, shown) if ok)
+    return top / level if level > 0 else float('nan')
 
 
 def paint_contrasts(lanes: list[np.ndarray], raster: np.ndarray,
                     resolution_m: float) -> np.ndarray:
-    """Per lane, how far its brightest returns stand out from the road on its brighter side
-    (PERCENTILE of the cells on it / that side's median); NaN without evidence either way.
-    One gather for all lanes: the per-call overhead, not the samples, is the cost."""
+    """(N, 2): per lane, how far its brightest returns stand out (PERCENTILE of the cells on
+    it) from the road on its brighter side, 0.35-1 m away (one side will do) and right beside
+    it (both sides must be observed); NaN without evidence. One gather for all lanes: the
+    per-call overhead, not the samples, is the cost."""
     along = [_along(np.asarray(lane, dtype=np.float64)) for lane in lanes]
     counts = np.array([len(points) for points, _ in along])
     if not counts.sum():
-        return np.full(len(lanes), np.nan)
+        return np.full((len(lanes), 2), np.nan)
     values, z, offset, point = _cells(raster, np.concatenate([p for p, _ in along]),
                                       np.concatenate([n for _, n in along]), _OFFSETS,
                                       resolution_m)
     bounds = np.searchsorted(point, np.concatenate([[0], np.cumsum(counts)]))
-    return np.array([_contrast(values[i:j], z[i:j], offset[i:j]) if n >= 2 else np.nan
-                     for i, j, n in zip(bounds[:-1], bounds[1:], counts)])
+    return np.array([_contrast(values[i:j], z[i:j], offset[i:j]) if n >= 2 else
+                     (np.nan, np.nan) for i, j, n in zip(bounds[:-1], bounds[1:], counts)]
+                    ).reshape(len(lanes), 2)
 
 
 def paint_contrast(lane: np.ndarray, raster: np.ndarray, resolution_m: float) -> float:
-    """paint_contrasts of one lane."""
-    return float(paint_contrasts([lane], raster, resolution_m)[0])
+    """paint_contrasts of one lane against the road 0.35-1 m away."""
+    return float(paint_contrasts([lane], raster, resolution_m)[0, 0])
+
+
+def stripe_contrast(lane: np.ndarray, raster: np.ndarray, resolution_m: float) -> float:
+    """paint_contrasts of one lane against the road right beside it."""
+    return float(paint_contrasts([lane], raster, resolution_m)[0, 1])
 
 
 def keep_painted(lanes: list[np.ndarray], confidences: np.ndarray, raster: np.ndarray,
                  resolution_m: float, min_contrast: float) -> tuple[list[np.ndarray], np.ndarray]:
-    """The lanes (with their confidences) whose paint_contrast is >= min_contrast or unknown.
+    """The lanes (with their confidences) whose paint_contrast is >= min_contrast or unknown,
+    or whose stripe_contrast is >= STRIPE_FACTOR x min_contrast.
 
     min_contrast <= 0 returns the lanes unchanged.
     """
     if min_contrast <= 0 or not lanes:
         return lanes, confidences
-    keep = ~(paint_contrasts(lanes, raster, resolution_m) < min_contrast)  # NaN: kept
+    beside, right_beside = paint_contrasts(lanes, raster, resolution_m).T
+    keep = ~(beside < min_contrast) | (right_beside >= STRIPE_FACTOR * min_contrast)  # NaN: kept
     return [lane for lane, k in zip(lanes, keep) if k], np.asarray(confidences)[keep]

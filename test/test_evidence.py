@@ -13,6 +13,7 @@ from fhld_ros.evidence import (
     keep_observed,
     keep_painted,
     paint_contrast,
+    stripe_contrast,
 )
 
 RES = 0.04
@@ -130,11 +131,33 @@ def test_a_strip_darker_than_the_road_on_one_side_is_no_line():
     raster[0, rows_between(5.2, 6.5)] = 2 * ROAD
     lane = straight_lane(y=5.0)
     assert paint_contrast(lane, raster, RES) == pytest.approx(0.75)
+    assert stripe_contrast(lane, raster, RES) == pytest.approx(0.75)  # an edge, not a stripe
     assert keep_painted([lane], np.array([0.98]), raster, RES, 1.3)[0] == []
     # the same band raised 0.15 m (a sidewalk behind a curb) is not road: the strip stands out
     # from the road on the other side
     raster[3, rows_between(5.2, 6.5)] += 0.15 / (MIN_HEIGHT_HIGH_M - MIN_HEIGHT_LOW_M)
     assert paint_contrast(lane, raster, RES) == pytest.approx(1.5)
+
+
+def test_a_worn_line_inside_a_light_verge_is_a_stripe():
+    # worn paint 1.8 x the road, asphalt for 0.4 m beyond it, then a verge 2.5 x the road at the
+    # road's height: dimmer than the verge 0.35-1 m away, but a stripe against the road right
+    # beside it on both sides
+    raster = road_raster()
+    raster[0, rows_between(4.92, 5.08)] = 1.8 * ROAD
+    raster[0, rows_between(5.5, 6.5)] = 2.5 * ROAD
+    lane = straight_lane(y=5.0)
+    assert paint_contrast(lane, raster, RES) == pytest.approx(0.72)
+    assert stripe_contrast(lane, raster, RES) == pytest.approx(1.8)
+    assert len(keep_painted([lane], np.array([0.9]), raster, RES, 1.3)[0]) == 1
+    # a stripe must stand out more than a line against the wider road: 1.5 x is not enough
+    raster[0, rows_between(4.92, 5.08)] = 1.5 * ROAD
+    assert keep_painted([lane], np.array([0.9]), raster, RES, 1.3)[0] == []
+    # with the road right beside it unobserved on one side there is no stripe to see
+    raster[0, rows_between(4.92, 5.08)] = 1.8 * ROAD
+    raster[1, rows_between(4.65, 4.85)] = 0.0
+    assert np.isnan(stripe_contrast(lane, raster, RES))
+    assert keep_painted([lane], np.array([0.9]), raster, RES, 1.3)[0] == []
 
 
 def test_without_evidence_either_way_a_lane_stays():
