@@ -64,8 +64,9 @@ class DetectorParams:
         'no lanes over ground the sensor never saw (0.0 = off)', range='[0, 100]')
     min_paint_contrast: float = documented(
         1.3, 'FHLD lanes whose brightest returns are not this many times as bright as the road '
-        'on each side of them (at their height) are dropped: no lanes along bare curbs, seams '
-        'or light strips (0.0 = off)', range='[0, 100]')
+        'on each side of them (at their height), nor 1.25 x this against the road right beside '
+        'them, are dropped: no lanes along bare curbs, seams or light strips (0.0 = off)',
+        range='[0, 100]')
     size_px: int = documented(640, 'BEV window size in cells (square)', range=SIZE_PX)
     resolution_m: float = documented(0.04, 'BEV cell size in metres', range='(0, 10]')
     accumulate_sec: float = documented(
