@@ -123,13 +123,20 @@ def test_dashes_are_paint():
     assert paint_contrast(straight_lane(y=1.75), raster, RES) == pytest.approx(1.6)
 
 
+def strip_and_band(strip: tuple[float, float], strip_gain: float, band: tuple[float, float],
+                   band_gain: float) -> tuple[np.ndarray, np.ndarray]:
+    """The road with a strip and a band (window y from, to) that many times as bright, and a
+    lane along y = 5 m."""
+    raster = road_raster()
+    raster[0, rows_between(*strip)] = strip_gain * ROAD
+    raster[0, rows_between(*band)] = band_gain * ROAD
+    return raster, straight_lane(y=5.0)
+
+
 def test_a_strip_darker_than_the_road_on_one_side_is_no_line():
     # a strip 1.5 x the road along a band twice as bright at the road's height (a concrete
     # gutter, a light verge): brighter than one side only
-    raster = road_raster()
-    raster[0, rows_between(4.84, 5.2)] = 1.5 * ROAD
-    raster[0, rows_between(5.2, 6.5)] = 2 * ROAD
-    lane = straight_lane(y=5.0)
+    raster, lane = strip_and_band((4.84, 5.2), 1.5, (5.2, 6.5), 2.0)
     assert paint_contrast(lane, raster, RES) == pytest.approx(0.75)
     assert stripe_contrast(lane, raster, RES) == pytest.approx(0.75)  # an edge, not a stripe
     assert keep_painted([lane], np.array([0.98]), raster, RES, 1.3)[0] == []
@@ -143,10 +150,7 @@ def test_a_worn_line_inside_a_light_verge_is_a_stripe():
     # worn paint 1.8 x the road, asphalt for 0.4 m beyond it, then a verge 2.5 x the road at the
     # road's height: dimmer than the verge 0.35-1 m away, but a stripe against the road right
     # beside it on both sides
-    raster = road_raster()
-    raster[0, rows_between(4.92, 5.08)] = 1.8 * ROAD
-    raster[0, rows_between(5.5, 6.5)] = 2.5 * ROAD
-    lane = straight_lane(y=5.0)
+    raster, lane = strip_and_band((4.92, 5.08), 1.8, (5.5, 6.5), 2.5)
     assert paint_contrast(lane, raster, RES) == pytest.approx(0.72)
     assert stripe_contrast(lane, raster, RES) == pytest.approx(1.8)
     assert len(keep_painted([lane], np.array([0.9]), raster, RES, 1.3)[0]) == 1
