@@ -31,6 +31,7 @@ from fhld_ros.salad.checkpoint import save_salad
 from fhld_ros.salad.config import SaladConfig
 from fhld_ros.salad.model import SaladNet
 from fhld_ros.salad.parameters import CameraParams
+from fhld_ros.salad.road_plane import RoadPlane
 from msg_adapters.camera import camera_info_msg, image_to_msg
 from msg_adapters.family import rosbags_family
 from msg_adapters.lanes import DELETEALL, LINE_STRIP
@@ -181,7 +182,12 @@ class RoadDetector:
     cfg = SaladConfig()
     timings_ms = {'warp_ms': 1.0}
 
-    def __call__(self, image: np.ndarray, k: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+    def __init__(self) -> None:
+        self.roads: list[RoadPlane | None] = []
+
+    def __call__(self, image: np.ndarray, k: np.ndarray, road: RoadPlane | None = None
+                 ) -> tuple[list[np.ndarray], np.ndarray]:
+        self.roads.append(road)
         z = np.linspace(4.0, 50.0, 47)
         return ([np.column_stack([np.full_like(z, x), np.full_like(z, 1.5), z])
                  for x in (-5.25, -1.75, 1.75, 5.25)], np.array([0.9, 0.8, 0.7, 0.3]))
@@ -198,13 +204,18 @@ def _info(k: np.ndarray = K, width: int = 960, height: int = 540):
 
 def test_lanes_come_out_in_the_output_frame_with_ego_lanes_and_the_seen_ground():
     pose = (1.0, 0.2, 1.5, -np.pi / 2, 0.0, -np.pi / 2)  # level, 1.5 m over base_link
-    outs = []
-    for params in (CameraParams(), CameraParams(output_frame='base_link', camera_to_output=pose)):
+    outs, roads = [], []
+    for params in (CameraParams(), CameraParams(output_frame='base_link', camera_to_output=pose,
+                                                road_plane_m=30.0)):
         pipeline = CameraPipeline(params, RoadDetector())
         assert pipeline.receive_camera_info(_info()) is None
         assert pipeline.receive_image(_image(0)).due
         outs.append(pipeline.detect())
+        roads += pipeline.detector.roads
     camera, base = outs
+    # with road_plane_m the detector gets base_link's ground: 1.5 m below the level camera
+    assert roads[0] is None and roads[1] == RoadPlane.from_extrinsic(euler_to_matrix(*pose), 30.0)
+    np.testing.assert_allclose(roads[1].normal, [0.0, 1.0, 0.0], atol=1e-6)
     assert (camera.frame_id, base.frame_id) == ('camera', 'base_link')
     assert len(camera.lanes) == 3 and np.allclose(camera.confidences, [0.9, 0.8, 0.7])
     T = euler_to_matrix(*pose)

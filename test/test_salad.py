@@ -249,7 +249,7 @@ def test_the_error_by_range_is_where_the_lanes_are_off():
     gt = _road()
     off_far = [lane + np.where(lane[:, 2:] > 40.0, [0.4, 0.0, 0.0], 0.0) for lane in gt]
     image = np.zeros((CAMERA.height, CAMERA.width, 3), dtype=np.uint8)
-    rows = score(lambda image, k: (off_far, np.ones(4)),
+    rows = score(lambda image, k, road=None: (off_far, np.ones(4)),
                  [CameraLaneSample(image, CAMERA.intrinsics, gt, 'shifted')])
     by_range = rows['by_range']
     assert [by_range[b]['median_m'] for b in ('0-10m', '10-20m', '20-30m', '30-40m')] == \

@@ -17,7 +17,9 @@ frame (the camera's optical frame: x right, y down, z forward). Ids are kept fro
 and the ego lane's bounds found in the camera's own forward-left-up frame (the optical frame
 turned: x forward, y left), whatever the output frame. The bev_window outline is the ground the
 model saw up to the decoder's depth (annotation/footprint.py) on the plane the lanes span, or a
-level road params.camera_height_m below the camera when they span none.
+level road params.camera_height_m below the camera when they span none. With
+params.road_plane_m the near lanes take their depth from output_frame's z = 0 plane, the road
+(road_plane.py).
 """
 from __future__ import annotations
 
@@ -36,6 +38,7 @@ from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT
 from fhld_ros.salad.config import SaladConfig
 from fhld_ros.salad.detector import SaladDetector
 from fhld_ros.salad.parameters import CameraParams
+from fhld_ros.salad.road_plane import RoadPlane
 from fhld_ros.salad.virtual_camera import VirtualCamera
 from msg_adapters.camera import camera_info_values, msg_to_image
 from msg_adapters.family import stamp_to_ns
@@ -62,7 +65,7 @@ class CameraLaneDetector(Protocol):
     cfg: SaladConfig
     timings_ms: dict[str, float]
 
-    def __call__(self, image: np.ndarray, intrinsics: np.ndarray
+    def __call__(self, image: np.ndarray, intrinsics: np.ndarray, road: RoadPlane | None = None
                  ) -> tuple[list[np.ndarray], np.ndarray]: ...
 
 
@@ -179,6 +182,8 @@ class CameraPipeline:
         self.detector = detector
         self.min_interval_ns = int(DUE_FRACTION * 1e9 / params.rate_hz)
         self.T_output_camera = euler_to_matrix(*params.camera_to_output)
+        self.road = (RoadPlane.from_extrinsic(self.T_output_camera, params.road_plane_m)
+                     if params.road_plane_m > 0 else None)
         self.camera: CameraIntrinsics | None = None
         self.camera_problem = 'no camera_info received yet'
         self.pending: CameraImage | None = None
@@ -258,7 +263,7 @@ class CameraPipeline:
 
     def detect_image(self, image: CameraImage) -> LaneOutput:
         """SALAD on one image; lanes above score_threshold, in the output frame."""
-        lanes_optical, scores = self.detector(image.rgb, image.camera.K)
+        lanes_optical, scores = self.detector(image.rgb, image.camera.K, self.road)
         start = time.perf_counter()
         keep = [i for i, score in enumerate(scores) if score >= self.params.score_threshold]
         confidences = np.asarray(scores, dtype=np.float64)[keep]

@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from fhld_ros.salad.config import STRIDE, SaladConfig
+from fhld_ros.salad.road_plane import RoadPlane
 
 MIN_DEPTH_M = 1.0
 LINK_M = 0.8  # a point continues a lane within this lateral distance (metres) ...
@@ -40,16 +41,20 @@ def link_reach(z: np.ndarray) -> np.ndarray:
     return np.maximum(LINK_M, LINK_FRACTION * z)
 
 
-def lane_points(prob: np.ndarray, spatial: np.ndarray, cfg: SaladConfig) -> np.ndarray:
+def lane_points(prob: np.ndarray, spatial: np.ndarray, cfg: SaladConfig,
+                road: RoadPlane | None = None) -> np.ndarray:
     """(P, 6) points (x, y, z, probability, top cell row, depth slice) in the optical frame,
     near slices first, each the probability-weighted mean of a slice's lane cells that lie
-    within the link reach of each other laterally."""
+    within the link reach of each other laterally. With a road plane, the near cells take
+    their depth from it (road_plane.py)."""
     mask = prob > cfg.seg_threshold
     rows, cols = np.nonzero(mask)
     cam = cfg.camera
     u = (cols + spatial[0][mask] + 0.5) * STRIDE - 0.5
     v = (rows + spatial[1][mask] + 0.5) * STRIDE - 0.5
     z = np.asarray(cfg.row_shift)[rows] + np.asarray(cfg.row_scale)[rows] * spatial[2][mask]
+    if road is not None:
+        z = road.blend(z, u, v, cam)
     # each cell back-projected on its own: a cell row near the horizon spans tens of metres of
     # a lane, and the mean of u times the mean of z is not on it
     x, y = (u - cam.cx) * z / cam.focal, (v - cam.cy) * z / cam.focal
@@ -146,11 +151,12 @@ def extend_to_row_edge(lane: np.ndarray, top_row: float, cfg: SaladConfig) -> np
     return np.vstack([lane, np.column_stack([x, y, extra])[:n]])
 
 
-def decode(prob: np.ndarray, spatial: np.ndarray, cfg: SaladConfig
-           ) -> tuple[list[np.ndarray], np.ndarray]:
+def decode(prob: np.ndarray, spatial: np.ndarray, cfg: SaladConfig,
+           road: RoadPlane | None = None) -> tuple[list[np.ndarray], np.ndarray]:
     """Lanes ((N, 3) optical frame, near to far) and their scores (mean cell probability)
-    from one image's maps: prob (h, w) in [0, 1], spatial (3, h, w)."""
-    points = lane_points(prob, spatial, cfg)
+    from one image's maps: prob (h, w) in [0, 1], spatial (3, h, w); the near lanes' depth
+    from the road plane where the camera's mount gives one."""
+    points = lane_points(prob, spatial, cfg, road)
     lanes, scores = [], []
     for index in group_points(points):
         lane = fit_lane(points[index])

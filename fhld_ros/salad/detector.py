@@ -20,6 +20,7 @@ from fhld_ros.errors import ConfigError
 from fhld_ros.model.inference import serving_graph
 from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT, load_salad
 from fhld_ros.salad.decode import decode
+from fhld_ros.salad.road_plane import RoadPlane
 
 MIRROR_SIGN = torch.tensor([-1.0, 1.0, 1.0]).view(3, 1, 1)  # du, dv, dz of a mirrored map
 
@@ -69,11 +70,12 @@ class SaladDetector:
         x = torch.from_numpy(warped).permute(2, 0, 1)[None]
         return torch.cat([x, x.flip(-1)]) if self.flip_average else x
 
-    def __call__(self, image: np.ndarray, intrinsics: np.ndarray
+    def __call__(self, image: np.ndarray, intrinsics: np.ndarray, road: RoadPlane | None = None
                  ) -> tuple[list[np.ndarray], np.ndarray]:
-        """Lanes ((N, 3) optical frame, metres, near to far) and their scores."""
+        """Lanes ((N, 3) optical frame, metres, near to far) and their scores; road: the road
+        under the camera where its mount is known (road_plane.py)."""
         prob, spatial = self.maps(image, intrinsics)
         start = time.perf_counter()
-        lanes, scores = decode(prob, spatial, self.cfg)
+        lanes, scores = decode(prob, spatial, self.cfg, road)
         self.timings_ms['decode_ms'] = (time.perf_counter() - start) * 1e3
         return lanes, scores

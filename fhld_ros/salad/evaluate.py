@@ -8,12 +8,16 @@ unilateral chamfer distance), the released evaluator's figures at 0.30 m ("offic
 error by range ("by_range": over the GT points of every compared pair, the distance to the
 predicted lane, per 10 m of forward distance; where the far range loses it). `--perfect`
 replaces heads by their targets (perfect_maps.py), to see which head the F1 is lost in.
+`--road-plane M` gives the near lanes their depth from the road under the camera where the
+source knows its mount (the simulator's drives; road_plane.py), up to M metres: SALAD with a
+known mount, not the paper's SALAD.
 Lanes are compared in a camera-centred top view (metrics.py takes x forward, y left, z up:
 the optical frame turned, not moved).
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from collections.abc import Iterable, Iterator
@@ -61,6 +65,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "images' GT lanes: what F1 would be with them perfect")
     parser.add_argument('--no-flip-average', dest='flip_average', action='store_false',
                         help='one network pass per image, not the mean with its mirror image')
+    parser.add_argument('--road-plane', type=float, default=0.0, metavar='M',
+                        help="the near lanes' depth from the road plane of the camera's known "
+                             'mount (simulated drives), up to M metres (0: off; 40 chosen on '
+                             'the validation images)')
     parser.add_argument('--json', action='store_true', help='print one JSON object last')
 
 
@@ -69,14 +77,18 @@ def optical_to_window(lane: np.ndarray) -> np.ndarray:
     return np.column_stack([lane[:, 2], -lane[:, 0], -lane[:, 1]])
 
 
-def score(detector: SaladDetector, samples: Iterable[CameraLaneSample]) -> dict[str, dict]:
+def score(detector: SaladDetector, samples: Iterable[CameraLaneSample],
+          road_until_m: float = 0.0) -> dict[str, dict]:
     """Counts summed over the samples, as score rows: 'tau_0.15' ... and 'official', and the
-    error by range ('by_range')."""
+    error by range ('by_range'); road_until_m > 0: with each sample's road plane (if it has
+    one) up to that depth."""
     counts = {tau: LaneCounts() for tau in TAUS}
     official, images = LaneCounts(official=True), 0
     errors: list[np.ndarray] = []  # (n, 2): GT point's forward distance, error
     for sample in samples:
-        lanes, scores = detector(sample.image, sample.intrinsics)
+        road = (dataclasses.replace(sample.road, until_m=road_until_m)
+                if road_until_m > 0 and sample.road is not None else None)
+        lanes, scores = detector(sample.image, sample.intrinsics, road)
         pred = [optical_to_window(lane) for lane in lanes]
         gt = [optical_to_window(lane) for lane in sample.lanes if len(lane) >= 2]
         matches = once_matches(pred, gt, HALF_SIZE_M)  # one assignment for every tau
@@ -130,8 +142,8 @@ def _print(name: str, rows: dict[str, dict]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.drives < 0 or args.frames < 1:
-        raise ConfigError('--drives must be >= 0 and --frames >= 1')
+    if args.drives < 0 or args.frames < 1 or args.road_plane < 0:
+        raise ConfigError('--drives and --road-plane must be >= 0 and --frames >= 1')
     detector = SaladDetector(args.checkpoint, flip_average=args.flip_average)
     perfect = PerfectMaps(detector, args.perfect) if args.perfect else None
     sources = {}
@@ -147,8 +159,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError('nothing to score: --drives 0 and no --once / --openlane')
     results = {}
     for name, samples in sources.items():
-        results[name] = (score(perfect, perfect.over(samples)) if perfect
-                         else score(detector, samples))
+        results[name] = (score(perfect, perfect.over(samples), args.road_plane) if perfect
+                         else score(detector, samples, args.road_plane))
         _print(f'{name} (perfect {", ".join(args.perfect)})' if perfect else name,
                results[name])
     if args.json:

@@ -11,6 +11,7 @@ import numpy as np
 
 from fhld_ros.salad.decode import decode
 from fhld_ros.salad.detector import SaladDetector
+from fhld_ros.salad.road_plane import RoadPlane
 from fhld_ros.salad.sample import CameraLaneSample
 from fhld_ros.salad.targets import lane_targets
 
@@ -34,7 +35,7 @@ class PerfectMaps:
             self._lanes = sample.lanes  # the optical frame: the virtual camera's too
             yield sample
 
-    def __call__(self, image: np.ndarray, intrinsics: np.ndarray
+    def __call__(self, image: np.ndarray, intrinsics: np.ndarray, road: RoadPlane | None = None
                  ) -> tuple[list[np.ndarray], np.ndarray]:
         prob, spatial = self.detector.maps(image, intrinsics)
         cfg = self.detector.cfg
@@ -48,4 +49,4 @@ class PerfectMaps:
         if 'depth' in self.heads:
             spatial[2] = np.where(target.depth_mask, cfg.depth_residual(target.depth),
                                   spatial[2])
-        return decode(prob, spatial, cfg)
+        return decode(prob, spatial, cfg, road)

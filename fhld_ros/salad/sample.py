@@ -6,18 +6,22 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fhld_ros.salad.road_plane import RoadPlane
+
 
 @dataclass
 class CameraLaneSample:
     """image: (H, W, 3) uint8 RGB. intrinsics: (3, 3) K of that image (pixel (0, 0)'s centre at
     u = v = 0). lanes: (N, 3) float64 polylines in the camera optical frame (x right, y down, z
     forward, metres), each ordered near to far, only what the image shows. name: where it came
-    from (a file, a seed), for messages."""
+    from (a file, a seed), for messages. road: the road under the camera where its mount is
+    known (the simulator's), for depth up to road.until_m."""
 
     image: np.ndarray
     intrinsics: np.ndarray
     lanes: list[np.ndarray] = field(default_factory=list)
     name: str = ''
+    road: RoadPlane | None = None
 
     def __post_init__(self) -> None:
         image = np.asarray(self.image)

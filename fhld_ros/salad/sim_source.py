@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fhld_ros.data.cache import scenario_for_seed
+from fhld_ros.salad.road_plane import RoadPlane
 from fhld_ros.salad.sample import CameraLaneSample
 from fhld_ros.sim.camera import (
     HFOV_DEG,
@@ -120,6 +121,9 @@ def simulated_samples(seed: int, frames: int, size: tuple[int, int] = DEFAULT_SI
     """`frames` images of the seed's drive, FRAME_STRIDE sweeps apart, with their visible
     lanes. randomise: the seed's own camera (camera_for_seed), else the fixed one."""
     camera = drive_camera(seed, frames, size, randomise)
+    draw = camera_for_seed(seed, randomise)  # the car stands on the road: the mount is known
+    road = RoadPlane.level(draw.height_m, np.radians(draw.pitch_deg))
     for k in range(0, frames * FRAME_STRIDE, FRAME_STRIDE):
         image, lanes = visible_lanes(camera, k)
-        yield CameraLaneSample(image.rgb, camera.K.copy(), lanes, f'sim seed {seed} sweep {k}')
+        yield CameraLaneSample(image.rgb, camera.K.copy(), lanes, f'sim seed {seed} sweep {k}',
+                               road)

@@ -1,0 +1,107 @@
+"""A known camera mount: the road plane gives SALAD's near lanes their depth (road_plane.py)."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from fhld_ros.errors import ConfigError
+from fhld_ros.salad.config import SaladConfig
+from fhld_ros.salad.decode import decode
+from fhld_ros.salad.evaluate import score
+from fhld_ros.salad.parameters import CameraParams
+from fhld_ros.salad.road_plane import RoadPlane
+from fhld_ros.salad.sample import CameraLaneSample
+from fhld_ros.salad.sim_source import simulated_samples
+from fhld_ros.salad.targets import lane_targets, row_statistics
+from fhld_ros.salad.virtual_camera import VirtualCamera
+from msg_adapters.odometry import euler_to_matrix
+
+CAMERA = VirtualCamera()
+HEIGHT, PITCH = 1.5, np.radians(3.0)
+
+
+def _level_road() -> list[np.ndarray]:
+    """Four straight lanes on a level road HEIGHT below a camera pitched down by PITCH."""
+    z = np.linspace(3.0, 70.0, 1000)
+    turn = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(PITCH), -np.sin(PITCH)],
+                     [0.0, np.sin(PITCH), np.cos(PITCH)]])  # level frame -> pitched optical
+    return [np.column_stack([np.full_like(z, x0), np.full_like(z, HEIGHT), z]) @ turn.T
+            for x0 in (-5.25, -1.75, 1.75, 5.25)]
+
+
+def test_the_output_frames_ground_is_the_plane_of_a_level_mount():
+    # optical -> base_footprint: 1.5 m up, pitched 3 degrees down (ROS RPY of an optical frame)
+    T = euler_to_matrix(0.4, -0.1, HEIGHT, -np.pi / 2 - PITCH, 0.0, -np.pi / 2)
+    road = RoadPlane.from_extrinsic(T)
+    level = RoadPlane.level(HEIGHT, PITCH)
+    np.testing.assert_allclose(road.normal, level.normal, atol=1e-9)
+    assert road.height_m == pytest.approx(HEIGHT) and road.until_m == 40.0
+    # a level camera: the row 100 px below the centre sees the road at f h / 100
+    flat = RoadPlane.level(HEIGHT, 0.0)
+    assert flat.depth(np.array([CAMERA.cx]), np.array([CAMERA.cy + 100.0]), CAMERA)[0] == \
+        pytest.approx(CAMERA.focal * HEIGHT / 100.0)
+    assert np.isinf(flat.depth(np.array([0.0]), np.array([CAMERA.cy - 5.0]), CAMERA)[0])
+    with pytest.raises(ValueError, match='above the road'):
+        RoadPlane.from_extrinsic(euler_to_matrix(0, 0, -1.0, -np.pi / 2, 0, -np.pi / 2))
+
+
+def test_near_lanes_take_the_roads_depth_and_far_ones_the_networks():
+    lanes = _level_road()
+    targets = lane_targets(lanes, CAMERA)
+    shift, scale = row_statistics(targets.depth[None], targets.depth_mask[None])
+    cfg = dataclasses.replace(SaladConfig(camera=CAMERA), row_shift=tuple(shift),
+                              row_scale=tuple(scale))
+    far_off = cfg.depth_residual(targets.depth * 1.1)  # a network 10 % too far everywhere
+    maps = targets.seg * 0.9, np.concatenate([targets.offsets, far_off[None]])
+    trees = [cKDTree(lane) for lane in lanes]
+
+    def error(decoded: list[np.ndarray], near: bool) -> float:
+        points = np.concatenate(decoded)
+        points = points[(points[:, 2] < 18.0) if near else (points[:, 2] > 32.0)]
+        return float(np.median([min(t.query(p)[0] for t in trees) for p in points]))
+
+    network, _ = decode(*maps, cfg)
+    # the plane up to 20 m, blending into the network's depth by 30 m
+    with_road, _ = decode(*maps, cfg, RoadPlane.level(HEIGHT, PITCH, until_m=20.0))
+    assert len(network) == len(with_road) == 4
+    assert error(network, near=True) > 0.15  # 10 % of the lanes' 1.75 and 5.25 m sideways
+    assert error(with_road, near=True) < 0.03
+    assert error(with_road, near=False) == pytest.approx(error(network, near=False), rel=0.2)
+
+
+def test_a_road_plane_needs_the_camera_above_the_output_frames_ground():
+    with pytest.raises(ConfigError, match='road_plane_m 40 needs camera_to_output'):
+        CameraParams(road_plane_m=40.0)
+    CameraParams(road_plane_m=40.0, output_frame='base_footprint',
+                 camera_to_output=(0.0, 0.0, HEIGHT, -np.pi / 2, 0.0, -np.pi / 2))
+
+
+class _Recorder:
+    """A detector that returns no lanes and keeps the road plane it was given."""
+
+    def __init__(self) -> None:
+        self.roads: list[RoadPlane | None] = []
+
+    def __call__(self, image: np.ndarray, k: np.ndarray, road: RoadPlane | None = None
+                 ) -> tuple[list[np.ndarray], np.ndarray]:
+        self.roads.append(road)
+        return [], np.zeros(0)
+
+
+def test_simulated_drives_know_their_mount_and_scoring_uses_it_when_asked():
+    sample = next(iter(simulated_samples(4_000_000, 1)))
+    assert sample.road is not None and 1.2 <= sample.road.height_m <= 2.0
+    # the GT lanes near the car lie on it
+    near = np.concatenate(sample.lanes)
+    near = near[near[:, 2] < 15.0]
+    assert np.abs(near @ np.asarray(sample.road.normal) - sample.road.height_m).max() < 0.05
+    plain = CameraLaneSample(sample.image, sample.intrinsics, sample.lanes, 'no mount')
+    recorder = _Recorder()
+    score(recorder, [sample, plain])
+    score(recorder, [sample, plain], road_until_m=30.0)
+    assert recorder.roads[:2] == [None, None]
+    assert recorder.roads[2] == dataclasses.replace(sample.road, until_m=30.0)
+    assert recorder.roads[3] is None
