@@ -233,6 +233,30 @@ def test_lanes_come_out_in_the_output_frame_with_ego_lanes_and_the_seen_ground()
     np.testing.assert_array_equal(flu[0], flu[4])
 
 
+class NoLanes(RoadDetector):
+    """Finds no lane."""
+
+    def __call__(self, image: np.ndarray, k: np.ndarray, road: RoadPlane | None = None
+                 ) -> tuple[list[np.ndarray], np.ndarray]:
+        return [], np.zeros(0)
+
+
+def test_with_a_known_mount_the_outline_lies_on_its_road():
+    # no lanes to span a plane: the outline lay on a level road camera_height_m (1.5) below
+    pose = (0.0, 0.0, 2.0, -np.pi / 2 - np.radians(2.0), 0.0, -np.pi / 2)  # 2 m up, 2 deg down
+    outlines = []
+    for road_plane_m in (0.0, 40.0):
+        params = CameraParams(output_frame='base_footprint', camera_to_output=pose,
+                              road_plane_m=road_plane_m)
+        pipeline = CameraPipeline(params, NoLanes())
+        pipeline.receive_camera_info(_info())
+        pipeline.receive_image(_image(0))
+        outlines.append(pipeline.detect().outline)
+    level, mount = outlines  # in base_footprint: the road is z = 0 there
+    assert np.ptp(level[:, 2]) > 0.1  # the level road 1.5 m below a camera pitched down
+    np.testing.assert_allclose(mount[:, 2], 0.0, atol=1e-6)
+
+
 def test_images_are_detected_at_rate_hz_on_their_stamps():
     pipeline = CameraPipeline(CameraParams(rate_hz=10.0), RoadDetector())
     pipeline.receive_camera_info(_info())

@@ -19,7 +19,7 @@ turned: x forward, y left), whatever the output frame. The bev_window outline is
 model saw up to the decoder's depth (annotation/footprint.py) on the plane the lanes span, or a
 level road params.camera_height_m below the camera when they span none. With
 params.road_plane_m the near lanes take their depth from output_frame's z = 0 plane, the road
-(road_plane.py).
+(road_plane.py), and the outline lies on it.
 """
 from __future__ import annotations
 
@@ -290,14 +290,19 @@ class CameraPipeline:
 
     def outline(self, camera: CameraIntrinsics, lanes_flu: list[np.ndarray]) -> np.ndarray:
         """(5, 3) closed outline, camera forward-left-up frame, of the ground the model saw up
-        to the decoder's depth (see the module doc); the camera's position five times when it
-        saw no ground (a camera looking up)."""
+        to the decoder's depth, on the known mount's road, else the lanes' plane, else a level
+        road (see the module doc); the camera's position five times when it saw no ground (a
+        camera looking up)."""
         cfg = self.detector.cfg
         region = seen_region(camera, cfg.camera)
         T_flu_optical = np.eye(4)
         T_flu_optical[:3, :3] = OPTICAL_TO_FLU
         level = (np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -self.params.camera_height_m]))
-        for plane in (lanes_plane(lanes_flu), level):
+        mount = None  # the road of the known mount, when given, before all guesses
+        if self.road is not None:
+            down = OPTICAL_TO_FLU @ np.asarray(self.road.normal)
+            mount = (-down, down * self.road.height_m)
+        for plane in (mount, lanes_plane(lanes_flu), level):
             if plane is None or region is None:
                 continue
             ground = camera_footprint(region, T_flu_optical, *plane, cfg.max_depth_m)
