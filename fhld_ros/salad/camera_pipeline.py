@@ -158,6 +158,12 @@ def seen_region(camera: CameraIntrinsics, virtual: VirtualCamera) -> CameraCalib
     return CameraCalibration(int(size[0]), int(size[1]), k, np.zeros(5), np.eye(4))
 
 
+def mount_plane(road: RoadPlane) -> tuple[np.ndarray, np.ndarray]:
+    """(up normal, point) of the known mount's road, camera forward-left-up frame."""
+    down = OPTICAL_TO_FLU @ np.asarray(road.normal)
+    return -down, down * road.height_m
+
+
 def lanes_plane(lanes_flu: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray] | None:
     """(up normal, point) of the plane the lanes (camera forward-left-up frame) span, None when
     they span none or one a camera on a road would not be over (see PLANE_*)."""
@@ -184,6 +190,7 @@ class CameraPipeline:
         self.T_output_camera = euler_to_matrix(*params.camera_to_output)
         self.road = (RoadPlane.from_extrinsic(self.T_output_camera, params.road_plane_m)
                      if params.road_plane_m > 0 else None)
+        self.mount_plane = None if self.road is None else mount_plane(self.road)
         self.camera: CameraIntrinsics | None = None
         self.camera_problem = 'no camera_info received yet'
         self.pending: CameraImage | None = None
@@ -298,11 +305,7 @@ class CameraPipeline:
         T_flu_optical = np.eye(4)
         T_flu_optical[:3, :3] = OPTICAL_TO_FLU
         level = (np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -self.params.camera_height_m]))
-        mount = None  # the road of the known mount, when given, before all guesses
-        if self.road is not None:
-            down = OPTICAL_TO_FLU @ np.asarray(self.road.normal)
-            mount = (-down, down * self.road.height_m)
-        for plane in (mount, lanes_plane(lanes_flu), level):
+        for plane in (self.mount_plane, lanes_plane(lanes_flu), level):
             if plane is None or region is None:
                 continue
             ground = camera_footprint(region, T_flu_optical, *plane, cfg.max_depth_m)

@@ -67,5 +67,4 @@ class RoadPlane:
         """The network's depths z of pixels (u, v) with the plane's blended in (module doc)."""
         road = self.depth(u, v, camera)
         weight = np.clip((BLEND * self.until_m - road) / ((BLEND - 1.0) * self.until_m), 0, 1)
-        return np.where(weight > 0, weight * np.where(weight > 0, road, 0.0)
-                        + (1.0 - weight) * z, z)
+        return weight * np.where(weight > 0, road, 0.0) + (1.0 - weight) * z  # inf: weight 0

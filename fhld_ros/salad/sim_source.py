@@ -121,8 +121,10 @@ def simulated_samples(seed: int, frames: int, size: tuple[int, int] = DEFAULT_SI
     """`frames` images of the seed's drive, FRAME_STRIDE sweeps apart, with their visible
     lanes. randomise: the seed's own camera (camera_for_seed), else the fixed one."""
     camera = drive_camera(seed, frames, size, randomise)
-    draw = camera_for_seed(seed, randomise)  # the car stands on the road: the mount is known
-    road = RoadPlane.level(draw.height_m, np.radians(draw.pitch_deg))
+    # the mount is known: the LiDAR frame is level, sim.mount.z over the road the car stands on
+    T_road_camera = camera.T_cloud_camera.copy()
+    T_road_camera[2, 3] += camera.sim.mount.z
+    road = RoadPlane.from_extrinsic(T_road_camera)
     for k in range(0, frames * FRAME_STRIDE, FRAME_STRIDE):
         image, lanes = visible_lanes(camera, k)
         yield CameraLaneSample(image.rgb, camera.K.copy(), lanes, f'sim seed {seed} sweep {k}',
