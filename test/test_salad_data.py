@@ -271,11 +271,13 @@ def test_salad_trains_on_a_users_once_and_openlane_data(tmp_path, capsys):
     _, info = load_salad(out / 'salad.pt')
     assert info['meta']['images'] == 5 and len(info['meta']['datasets']) == 2
     assert info['meta']['datasets'][0].endswith(f'{tmp_path / "once"} train')
-    # a resumed run reuses the packed images: the shards are not written again
+    # a resumed run reuses the packed images: the shards are not written again, and the
+    # temporary file of a shard whose writing was cut off is not read
     mtimes = [p.stat().st_mtime_ns for p in shards]
+    (cache / '.sim_1.tmp.npz').write_bytes(b'PK cut off')
     assert main([*train[:-2], '--steps', '3', '--resume', '--once',
                  str(tmp_path / 'once')]) == 0
-    assert [p.stat().st_mtime_ns for p in sorted(cache.glob('*.npz'))] == mtimes
+    assert [p.stat().st_mtime_ns for p in sorted(cache.glob('[!.]*.npz'))] == mtimes
     assert load_salad(out / 'salad.pt')[1]['meta']['steps'] == 3
     # bad input: one line naming the problem
     capsys.readouterr()

@@ -90,6 +90,12 @@ def dataset_shards(cache: Path, kind: str, source: str,
     return shards
 
 
+def finished_shards(cache: Path) -> list[Path]:
+    """The shards in cache, without the temporary file of a shard whose writing was cut off
+    (pathlib's glob matches names that start with a dot)."""
+    return sorted(p for p in cache.glob(f'*{SHARD_SUFFIX}') if not p.name.startswith('.'))
+
+
 def dataset_sources(cache: Path) -> list[str]:
     """The sources of the finished datasets packed in cache (dataset_shards' indexes)."""
     return [json.loads(p.read_text())['source'] for p in sorted(cache.glob('*.json'))]

@@ -22,12 +22,14 @@ class SaladCriterion(nn.Module):
         self.cfg = cfg
         self.register_buffer('shift', torch.tensor(cfg.row_shift).view(1, -1, 1))
         self.register_buffer('scale', torch.tensor(cfg.row_scale).view(1, -1, 1))
+        # a buffer, so the weight follows the criterion to the training device
+        self.register_buffer('pos_weight', torch.tensor(cfg.pos_weight), persistent=False)
 
     def forward(self, seg_logits: Tensor, spatial: Tensor,
                 targets: dict[str, Tensor]) -> dict[str, Tensor]:
         seg = targets['seg']
         seg_loss = F.binary_cross_entropy_with_logits(
-            seg_logits[:, 0], seg, pos_weight=torch.tensor(self.cfg.pos_weight))
+            seg_logits[:, 0], seg, pos_weight=self.pos_weight)
         lane = seg > 0.5
         offset_loss = _masked_smooth_l1(spatial[:, :2], targets['offsets'], lane)
         residual = (targets['depth'] - self.shift) / self.scale

@@ -35,6 +35,7 @@ from fhld_ros.salad.dataset import (
     ShardSamples,
     dataset_shards,
     dataset_sources,
+    finished_shards,
     simulated_shard,
 )
 from fhld_ros.salad.losses import SaladCriterion
@@ -160,7 +161,7 @@ def run(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     build_cache(cache, args.drives, args.frames, SaladConfig(), args.workers)
     build_datasets(cache, args, SaladConfig())
-    samples = ShardSamples(cache.glob(f'*{SHARD_SUFFIX}'))
+    samples = ShardSamples(finished_shards(cache))
     if not len(samples):
         raise ConfigError(f'no training images in {cache}')
     model, state = _start(args, samples)
@@ -176,10 +177,11 @@ def run(args: argparse.Namespace) -> int:
     step, stop = state['step'], min(args.steps, state['step'] + (args.slice_steps or args.steps))
     print(f'{len(samples)} images; steps {step}..{stop} of {args.steps}', file=sys.stderr)
     model.train()
+    started = time.monotonic()
     while step < stop:
         dataset.epoch = step // max(len(dataset) // args.batch, 1)
         loader = DataLoader(dataset, args.batch, shuffle=True, drop_last=True,
-                            num_workers=args.workers,
+                            num_workers=args.workers, pin_memory=args.device != 'cpu',
                             generator=torch.Generator().manual_seed(dataset.epoch))
         for batch in loader:
             for group in optimiser.param_groups:
@@ -192,7 +194,8 @@ def run(args: argparse.Namespace) -> int:
             step += 1
             if step % 50 == 0 or step == stop:
                 print(f'step {step} ' + ' '.join(f'{k} {float(v.detach()):.4f}' for k, v in
-                                                 losses.items()), file=sys.stderr, flush=True)
+                                                 losses.items())
+                      + f' time {time.monotonic() - started:.1f}', file=sys.stderr, flush=True)
             if step % args.save_every == 0 or step == stop:
                 _save(args, model, optimiser, state, step, meta)
             if step >= stop:
