@@ -60,7 +60,8 @@ def code_version() -> str:
 def save_checkpoint(path: str | os.PathLike, model: FhldDetector, train_command: str,
                     meta: dict[str, Any] | None = None, half: bool = False) -> Path:
     """Write atomically (temp file + rename). half=True stores float tensors as float16."""
-    state = {k: (v.half() if half and v.is_floating_point() else v).contiguous()
+    # CPU tensors: weights trained on a GPU load where there is none
+    state = {k: (v.half() if half and v.is_floating_point() else v).detach().cpu().contiguous()
              for k, v in model.state_dict().items()}
     payload = {'format': FORMAT, 'format_version': FORMAT_VERSION,
                'config': model.cfg.to_dict(), 'code_version': code_version(),

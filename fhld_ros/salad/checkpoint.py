@@ -50,8 +50,10 @@ def save_salad(path: str | os.PathLike, model: SaladNet, train_command: str,
                meta: dict[str, Any] | None = None) -> None:
     """Write atomically (a temporary file renamed over path)."""
     path = Path(path)
+    # CPU tensors: weights trained on a GPU load where there is none
+    state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
     payload = {'format': FORMAT, 'format_version': FORMAT_VERSION,
-               'config': _builtin(to_plain(model.cfg)), 'state_dict': model.state_dict(),
+               'config': _builtin(to_plain(model.cfg)), 'state_dict': state,
                'code_version': code_version(), 'train_command': train_command,
                'meta': _builtin(to_plain(meta or {}))}
     tmp = path.with_name(f'.{path.name}.tmp')
