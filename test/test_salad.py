@@ -11,7 +11,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from fhld_ros.errors import ConfigError
-from fhld_ros.salad.augment import flip, zoom
+from fhld_ros.salad.augment import SaladAugment, augment_images, draw, flip
 from fhld_ros.salad.checkpoint import SaladCheckpointError, load_salad, save_salad
 from fhld_ros.salad.config import STRIDE, SaladConfig
 from fhld_ros.salad.decode import decode, extend_to_row_edge
@@ -60,14 +60,31 @@ def test_a_point_lands_where_the_virtual_camera_sees_it_whatever_the_source_came
 def test_flip_and_zoom_move_the_image_and_the_3d_lane_alike():
     point = np.array([-2.0, 1.6, 15.0])
     image = _dot((CAMERA.width, CAMERA.height), _project(CAMERA.intrinsics, point))
+    rng = np.random.default_rng(0)
     for s in (0.85, 1.0, 1.25):
-        zoomed, (moved,) = zoom(image, [point[None]], CAMERA, s)
+        fixed = SaladAugment(flip=0.0, zoom=(s, s), brightness=0.0, contrast=0.0, colour=0.0)
+        same, (moved,), params = draw(image, [point[None]], rng, fixed)
         np.testing.assert_allclose(moved[0], [-2.0, 1.6, 15.0 / s])
-        np.testing.assert_allclose(_peak(zoomed), _project(CAMERA.intrinsics, moved[0]),
-                                   atol=0.3)
+        np.testing.assert_allclose(params, [s, 1, 1, 1, 1, 1], rtol=1e-6)
+        zoomed = augment_images(torch.from_numpy(same).permute(2, 0, 1)[None],
+                                torch.from_numpy(params)[None], CAMERA)[0]
+        np.testing.assert_allclose(_peak(zoomed.permute(1, 2, 0).numpy()),
+                                   _project(CAMERA.intrinsics, moved[0]), atol=0.3)
     flipped, (mirrored,) = flip(image, [point[None]])
     np.testing.assert_allclose(_peak(flipped), _project(CAMERA.intrinsics, mirrored[0]),
                                atol=0.3)
+
+
+def test_the_photometric_change_is_made_per_image_of_a_batch():
+    images = torch.full((2, 3, 8, 8), 100, dtype=torch.uint8)
+    images[1, :, :4] = 50  # mean 75
+    params = torch.tensor([[1.0, 1.0, 1.2, 1.0, 1.0, 3.0],   # brightness, blue clipped
+                           [1.0, 2.0, 1.0, 1.0, 0.5, 1.0]])  # contrast about 75, green gain
+    out = augment_images(images, params, CAMERA)
+    assert out.dtype == torch.float32
+    np.testing.assert_allclose(out[0, :, 0, 0], [120, 120, 255])
+    np.testing.assert_allclose(out[1, :, 0, 0], [25, 12.5, 25])
+    np.testing.assert_allclose(out[1, :, 7, 7], [125, 62.5, 125])
 
 
 def _road(curvature: float = 0.0) -> list[np.ndarray]:
@@ -345,3 +362,25 @@ def test_the_flip_average_sees_an_image_and_its_mirror_alike():
         same = (np.allclose(prob_m, prob[:, ::-1], atol=1e-5)
                 and np.allclose(spatial_m, mirrored, atol=1e-5))
         assert same == flip_average  # one pass alone is not mirror-symmetric
+
+
+def test_images_augmented_on_the_training_device_match_the_loaders(tmp_path):
+    from fhld_ros.salad.dataset import SaladDataset, ShardSamples, write_shard
+    from fhld_ros.salad.sample import CameraLaneSample
+
+    rng = np.random.default_rng(3)
+    image = rng.integers(0, 256, (CAMERA.height, CAMERA.width, 3), dtype=np.uint8)
+    lane = np.column_stack([np.full(40, -1.8), np.full(40, 1.5), np.linspace(5, 45, 40)])
+    write_shard(tmp_path / 'a.npz', [CameraLaneSample(image, CAMERA.intrinsics, [lane], 'a')],
+                CAMERA)
+    samples = ShardSamples([tmp_path / 'a.npz'])
+    loader = SaladDataset(samples, CAMERA, SaladAugment())
+    deferred = SaladDataset(samples, CAMERA, SaladAugment(), defer_images=True)
+    for epoch in range(4):  # the draws differ by epoch: flips and zooms in and out
+        loader.epoch = deferred.epoch = epoch
+        done, later = loader[0], deferred[0]
+        assert done['augment'].tolist() == [1.0] * 6 and later['augment'][0] != 1.0
+        for key in ('seg', 'offsets', 'depth', 'depth_mask'):
+            assert torch.equal(done[key], later[key])
+        batch = augment_images(later['image'][None], later['augment'][None], CAMERA)[0]
+        assert (batch - done['image'].float()).abs().max() <= 0.5 + 1e-3

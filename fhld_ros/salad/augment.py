@@ -7,16 +7,25 @@
   was (paper eq. 9, with s the zoom). Zooming out leaves a black border, as a smaller sensor
   would.
 * photometric: brightness, contrast and colour balance, which the 3D labels do not depend on.
+
+The draws, the flip and the lanes' scale are made per sample in the data loader (`draw`); the
+zoom and the photometric change of the image are made on whole batches (`augment_images`), on
+the training device: as numpy per sample they cost the loader more than the targets did, and on
+a GPU the loader was what bounded the step rate.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
-from PIL import Image
+import torch
+import torch.nn.functional as F
+from torch import Tensor
 
-from fhld_ros.salad.sample import CameraLaneSample
 from fhld_ros.salad.virtual_camera import VirtualCamera
+
+# per image: zoom s, contrast, brightness, then the red, green and blue gains
+IDENTITY = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 1.0], dtype=np.float32)
 
 
 @dataclass(frozen=True)
@@ -32,35 +41,37 @@ def flip(image: np.ndarray, lanes: list[np.ndarray]) -> tuple[np.ndarray, list[n
     return image[:, ::-1].copy(), [lane * np.array([-1.0, 1.0, 1.0]) for lane in lanes]
 
 
-def zoom(image: np.ndarray, lanes: list[np.ndarray], camera: VirtualCamera,
-         s: float) -> tuple[np.ndarray, list[np.ndarray]]:
-    """The image zoomed by s about the principal point (s > 1 enlarges), and its lanes."""
-    if s == 1.0:
-        return image, lanes
-    # PIL maps output to input pixel-edge coordinates (a pixel centre u sits at u + 0.5)
-    cu, cv = camera.cx + 0.5, camera.cy + 0.5
-    data = (1 / s, 0.0, cu * (1 - 1 / s), 0.0, 1 / s, cv * (1 - 1 / s))
-    out = Image.fromarray(image).transform((camera.width, camera.height), Image.AFFINE, data,
-                                           resample=Image.BILINEAR)
-    return np.asarray(out), [lane / np.array([1.0, 1.0, s]) for lane in lanes]
-
-
-def photometric(image: np.ndarray, rng: np.random.Generator, aug: SaladAugment) -> np.ndarray:
-    x = image.astype(np.float32)
-    mean = x.mean()
-    x = (x - mean) * rng.uniform(1 - aug.contrast, 1 + aug.contrast) + mean
-    x *= rng.uniform(1 - aug.brightness, 1 + aug.brightness)
-    x *= rng.uniform(1 - aug.colour, 1 + aug.colour, 3)
-    return np.clip(x, 0, 255).astype(np.uint8)
-
-
-def augment(sample: CameraLaneSample, camera: VirtualCamera, rng: np.random.Generator,
-            aug: SaladAugment) -> tuple[np.ndarray, list[np.ndarray]]:
-    """A virtual camera sample's image and lanes, randomly augmented."""
-    image, lanes = sample.image, sample.lanes
+def draw(image: np.ndarray, lanes: list[np.ndarray], rng: np.random.Generator,
+         aug: SaladAugment) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
+    """(image, flipped or not; the lanes as the augmented image shows them; the image's
+    parameters for augment_images)."""
     if rng.random() < aug.flip:
         image, lanes = flip(image, lanes)
     low, high = aug.zoom
-    image, lanes = zoom(image, lanes, camera, float(np.exp(rng.uniform(np.log(low),
-                                                                       np.log(high)))))
-    return photometric(image, rng, aug), lanes
+    s = float(np.exp(rng.uniform(np.log(low), np.log(high))))
+    params = np.array([s, rng.uniform(1 - aug.contrast, 1 + aug.contrast),
+                       rng.uniform(1 - aug.brightness, 1 + aug.brightness),
+                       *rng.uniform(1 - aug.colour, 1 + aug.colour, 3)], dtype=np.float32)
+    return image, [lane / np.array([1.0, 1.0, s]) for lane in lanes], params
+
+
+def augment_images(images: Tensor, params: Tensor, camera: VirtualCamera) -> Tensor:
+    """(B, 3, H, W) images (any dtype, 0-255) and their (B, 6) draws -> (B, 3, H, W) float32:
+    zoomed by s about the principal point (bilinear, black outside), then contrast about the
+    image's mean, brightness and the channel gains, clipped to 0-255."""
+    x = images.float()
+    params = params.to(x)
+    s = params[:, 0]
+    # normalised coordinates (align_corners=False): pixel edges at -1 and 1; the principal
+    # point's centre sits at (cx + 0.5) pixels from the left edge
+    centre = torch.tensor([2 * (camera.cx + 0.5) / camera.width - 1,
+                           2 * (camera.cy + 0.5) / camera.height - 1]).to(x)
+    theta = torch.zeros(len(x), 2, 3).to(x)
+    theta[:, 0, 0] = theta[:, 1, 1] = 1 / s
+    theta[:, :, 2] = centre * (1 - 1 / s)[:, None]
+    grid = F.affine_grid(theta, list(x.shape), align_corners=False)
+    x = F.grid_sample(x, grid, mode='bilinear', padding_mode='zeros', align_corners=False)
+    mean = x.mean(dim=(1, 2, 3), keepdim=True)
+    x = (x - mean) * params[:, 1, None, None, None] + mean
+    x = x * (params[:, 2, None] * params[:, 3:6])[:, :, None, None]
+    return x.clamp(0.0, 255.0)

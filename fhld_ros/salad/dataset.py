@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from fhld_ros.salad.augment import SaladAugment, augment
+from fhld_ros.salad.augment import IDENTITY, SaladAugment, augment_images, draw
 from fhld_ros.salad.sample import CameraLaneSample
 from fhld_ros.salad.sim_source import simulated_samples
 from fhld_ros.salad.targets import lane_targets
@@ -125,12 +125,17 @@ class ShardSamples:
 
 
 class SaladDataset(Dataset):
-    """Augmented images (3, H, W) uint8 and their targets as tensors. Each draw of an index
-    is augmented anew (seeded by index and `epoch`, so a resumed run draws the same)."""
+    """Augmented images (3, H, W) uint8 and the targets of their lanes as tensors. Each draw of
+    an index is augmented anew (seeded by index and `epoch`, so a resumed run draws the same).
+    With `defer_images` the image is only flipped, and its zoom and colour draws come as
+    'augment' (6,) for the training loop to apply to the batch (augment.augment_images, on a
+    GPU: the loader's share of the work halves)."""
 
     def __init__(self, samples: ShardSamples, camera: VirtualCamera,
-                 aug: SaladAugment | None = None, seed: int = 0) -> None:
+                 aug: SaladAugment | None = None, seed: int = 0,
+                 defer_images: bool = False) -> None:
         self.samples, self.camera, self.aug, self.seed = samples, camera, aug, seed
+        self.defer_images = defer_images
         self.epoch = 0
 
     def __len__(self) -> int:
@@ -138,12 +143,17 @@ class SaladDataset(Dataset):
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         sample = self.samples.sample(index, self.camera)
-        image, lanes = sample.image, sample.lanes
+        image, lanes, params = sample.image, sample.lanes, IDENTITY
         if self.aug is not None:
             rng = np.random.default_rng([self.seed, self.epoch, index])
-            image, lanes = augment(sample, self.camera, rng, self.aug)
+            image, lanes, params = draw(image, lanes, rng, self.aug)
+        image = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)
+        params = torch.from_numpy(params)
+        if not self.defer_images:
+            image = augment_images(image[None], params[None], self.camera)[0].round().byte()
+            params = torch.from_numpy(IDENTITY)
         t = lane_targets(lanes, self.camera)
-        return {'image': torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1),
+        return {'image': image, 'augment': params,
                 'seg': torch.from_numpy(t.seg), 'offsets': torch.from_numpy(t.offsets),
                 'depth': torch.from_numpy(t.depth),
                 'depth_mask': torch.from_numpy(t.depth_mask)}

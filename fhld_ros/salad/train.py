@@ -26,7 +26,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from fhld_ros.errors import ConfigError
-from fhld_ros.salad.augment import SaladAugment
+from fhld_ros.salad.augment import SaladAugment, augment_images
 from fhld_ros.salad.checkpoint import config_from_plain, load_salad, save_salad
 from fhld_ros.salad.config import SaladConfig
 from fhld_ros.salad.dataset import (
@@ -169,7 +169,9 @@ def run(args: argparse.Namespace) -> int:
     optimiser = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
     if 'optimiser' in state:
         optimiser.load_state_dict(state['optimiser'])
-    dataset = SaladDataset(samples, model.cfg.camera, SaladAugment())
+    # on a GPU the batch is zoomed and recoloured there, off the loader (augment.py)
+    dataset = SaladDataset(samples, model.cfg.camera, SaladAugment(),
+                           defer_images=args.device != 'cpu')
     # what salad.pt records besides its step count: the same for every save of this slice
     meta = {'images': len(samples), 'drives': args.drives, 'frames': args.frames,
             'datasets': dataset_sources(cache),
@@ -187,7 +189,9 @@ def run(args: argparse.Namespace) -> int:
             for group in optimiser.param_groups:
                 group['lr'] = learning_rate(step, args.steps, args.lr)
             batch = {k: v.to(args.device) for k, v in batch.items()}
-            losses = criterion(*model(batch['image']), batch)
+            images = (augment_images(batch['image'], batch['augment'], model.cfg.camera)
+                      if dataset.defer_images else batch['image'])
+            losses = criterion(*model(images), batch)
             optimiser.zero_grad(set_to_none=True)
             losses['loss'].backward()
             optimiser.step()
