@@ -384,3 +384,18 @@ def test_images_augmented_on_the_training_device_match_the_loaders(tmp_path):
             assert torch.equal(done[key], later[key])
         batch = augment_images(later['image'][None], later['augment'][None], CAMERA)[0]
         assert (batch - done['image'].float()).abs().max() <= 0.5 + 1e-3
+
+
+def test_epoch_batches_resume_where_they_stopped():
+    from itertools import islice
+
+    from fhld_ros.salad.dataset import EpochBatches
+
+    run = list(islice(EpochBatches(10, 3), 9))  # 3 batches an epoch, the 10th image dropped
+    assert [len(b) for b in run] == [3] * 9
+    assert [{e for e, _ in b} for b in run] == [{0}] * 3 + [{1}] * 3 + [{2}] * 3
+    first = [i for b in run[:3] for _, i in b]
+    assert len(set(first)) == 9 and first != sorted(first)
+    assert list(islice(EpochBatches(10, 3, first=4), 5)) == run[4:]
+    with pytest.raises(ValueError, match='a batch of 11 needs at least 11 training images'):
+        EpochBatches(10, 11)

@@ -286,3 +286,7 @@ def test_salad_trains_on_a_users_once_and_openlane_data(tmp_path, capsys):
     assert 'no such ONCE-3DLanes split directory' in capsys.readouterr().err
     assert main([*train, '--steps', '1', '--openlane-labels', str(tmp_path)]) != 0
     assert '--openlane-labels needs --openlane' in capsys.readouterr().err
+    train[1] = str(tmp_path / 'big')
+    assert main([*train, '--steps', '1', '--batch', '6', '--cache', str(cache)]) != 0
+    assert '--batch: a batch of 6 needs at least 6 training images; there are 5' in \
+        capsys.readouterr().err

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch.utils.data import Dataset
+from torch.utils.data import Dataset, Sampler
 
 from fhld_ros.salad.augment import IDENTITY, SaladAugment, augment_images, draw
 from fhld_ros.salad.sample import CameraLaneSample
@@ -141,11 +141,13 @@ class SaladDataset(Dataset):
     def __len__(self) -> int:
         return len(self.samples)
 
-    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+    def __getitem__(self, key: int | tuple[int, int]) -> dict[str, torch.Tensor]:
+        """key: an index (drawn as in `epoch`) or (epoch, index), as EpochBatches gives."""
+        epoch, index = key if isinstance(key, tuple) else (self.epoch, key)
         sample = self.samples.sample(index, self.camera)
         image, lanes, params = sample.image, sample.lanes, IDENTITY
         if self.aug is not None:
-            rng = np.random.default_rng([self.seed, self.epoch, index])
+            rng = np.random.default_rng([self.seed, epoch, index])
             image, lanes, params = draw(image, lanes, rng, self.aug)
         image = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)
         params = torch.from_numpy(params)
@@ -157,3 +159,25 @@ class SaladDataset(Dataset):
                 'seg': torch.from_numpy(t.seg), 'offsets': torch.from_numpy(t.offsets),
                 'depth': torch.from_numpy(t.depth),
                 'depth_mask': torch.from_numpy(t.depth_mask)}
+
+
+class EpochBatches(Sampler):
+    """Batches of (epoch, index) keys without end, from the batch `first` of the run on: each
+    epoch the indices in an order seeded by the epoch, its last partial batch dropped. One
+    loader serves a whole slice, so its workers start once, not every epoch, and a resumed run
+    draws what an uninterrupted one would have."""
+
+    def __init__(self, size: int, batch: int, first: int = 0) -> None:
+        if not 0 < batch <= size:
+            raise ValueError(f'a batch of {batch} needs at least {batch} training images; '
+                             f'there are {size}')
+        self.size, self.batch, self.per_epoch = size, batch, size // batch
+        self.epoch, self.skip = divmod(first, self.per_epoch)
+
+    def __iter__(self):
+        epoch, skip = self.epoch, self.skip
+        while True:
+            order = torch.randperm(self.size, generator=torch.Generator().manual_seed(epoch))
+            for b in range(skip, self.per_epoch):
+                yield [(epoch, i) for i in order[b * self.batch:(b + 1) * self.batch].tolist()]
+            epoch, skip = epoch + 1, 0

@@ -31,6 +31,7 @@ from fhld_ros.salad.checkpoint import config_from_plain, load_salad, save_salad
 from fhld_ros.salad.config import SaladConfig
 from fhld_ros.salad.dataset import (
     SHARD_SUFFIX,
+    EpochBatches,
     SaladDataset,
     ShardSamples,
     dataset_shards,
@@ -178,32 +179,35 @@ def run(args: argparse.Namespace) -> int:
             **{key: state[key] for key in ('init', 'init_steps') if key in state}}
     step, stop = state['step'], min(args.steps, state['step'] + (args.slice_steps or args.steps))
     print(f'{len(samples)} images; steps {step}..{stop} of {args.steps}', file=sys.stderr)
+    if step >= stop:
+        return 0
+    try:
+        batches = EpochBatches(len(dataset), args.batch, step)
+    except ValueError as exc:
+        raise ConfigError(f'--batch: {exc}') from None
+    loader = DataLoader(dataset, batch_sampler=batches, num_workers=args.workers,
+                        pin_memory=args.device != 'cpu')
     model.train()
     started = time.monotonic()
-    while step < stop:
-        dataset.epoch = step // max(len(dataset) // args.batch, 1)
-        loader = DataLoader(dataset, args.batch, shuffle=True, drop_last=True,
-                            num_workers=args.workers, pin_memory=args.device != 'cpu',
-                            generator=torch.Generator().manual_seed(dataset.epoch))
-        for batch in loader:
-            for group in optimiser.param_groups:
-                group['lr'] = learning_rate(step, args.steps, args.lr)
-            batch = {k: v.to(args.device) for k, v in batch.items()}
-            images = (augment_images(batch['image'], batch['augment'], model.cfg.camera)
-                      if dataset.defer_images else batch['image'])
-            losses = criterion(*model(images), batch)
-            optimiser.zero_grad(set_to_none=True)
-            losses['loss'].backward()
-            optimiser.step()
-            step += 1
-            if step % 50 == 0 or step == stop:
-                print(f'step {step} ' + ' '.join(f'{k} {float(v.detach()):.4f}' for k, v in
-                                                 losses.items())
-                      + f' time {time.monotonic() - started:.1f}', file=sys.stderr, flush=True)
-            if step % args.save_every == 0 or step == stop:
-                _save(args, model, optimiser, state, step, meta)
-            if step >= stop:
-                break
+    for batch in loader:
+        for group in optimiser.param_groups:
+            group['lr'] = learning_rate(step, args.steps, args.lr)
+        batch = {k: v.to(args.device) for k, v in batch.items()}
+        images = (augment_images(batch['image'], batch['augment'], model.cfg.camera)
+                  if dataset.defer_images else batch['image'])
+        losses = criterion(*model(images), batch)
+        optimiser.zero_grad(set_to_none=True)
+        losses['loss'].backward()
+        optimiser.step()
+        step += 1
+        if step % 50 == 0 or step == stop:
+            print(f'step {step} ' + ' '.join(f'{k} {float(v.detach()):.4f}' for k, v in
+                                             losses.items())
+                  + f' time {time.monotonic() - started:.1f}', file=sys.stderr, flush=True)
+        if step % args.save_every == 0 or step == stop:
+            _save(args, model, optimiser, state, step, meta)
+        if step >= stop:
+            break
     return 0
 
 
