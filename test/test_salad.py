@@ -377,8 +377,7 @@ def test_images_augmented_on_the_training_device_match_the_loaders(tmp_path):
     loader = SaladDataset(samples, CAMERA, SaladAugment())
     deferred = SaladDataset(samples, CAMERA, SaladAugment(), defer_images=True)
     for epoch in range(4):  # the draws differ by epoch: flips and zooms in and out
-        loader.epoch = deferred.epoch = epoch
-        done, later = loader[0], deferred[0]
+        done, later = loader[(epoch, 0)], deferred[(epoch, 0)]
         assert done['augment'].tolist() == [1.0] * 6 and later['augment'][0] != 1.0
         for key in ('seg', 'offsets', 'depth', 'depth_mask'):
             assert torch.equal(done[key], later[key])

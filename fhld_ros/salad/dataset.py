@@ -126,7 +126,7 @@ class ShardSamples:
 
 class SaladDataset(Dataset):
     """Augmented images (3, H, W) uint8 and the targets of their lanes as tensors. Each draw of
-    an index is augmented anew (seeded by index and `epoch`, so a resumed run draws the same).
+    an index is augmented anew (seeded by index and epoch, so a resumed run draws the same).
     With `defer_images` the image is only flipped, and its zoom and colour draws come as
     'augment' (6,) for the training loop to apply to the batch (augment.augment_images, on a
     GPU: the loader's share of the work halves)."""
@@ -136,14 +136,13 @@ class SaladDataset(Dataset):
                  defer_images: bool = False) -> None:
         self.samples, self.camera, self.aug, self.seed = samples, camera, aug, seed
         self.defer_images = defer_images
-        self.epoch = 0
 
     def __len__(self) -> int:
         return len(self.samples)
 
     def __getitem__(self, key: int | tuple[int, int]) -> dict[str, torch.Tensor]:
-        """key: an index (drawn as in `epoch`) or (epoch, index), as EpochBatches gives."""
-        epoch, index = key if isinstance(key, tuple) else (self.epoch, key)
+        """key: (epoch, index), as EpochBatches gives, or an index (drawn as in epoch 0)."""
+        epoch, index = key if isinstance(key, tuple) else (0, key)
         sample = self.samples.sample(index, self.camera)
         image, lanes, params = sample.image, sample.lanes, IDENTITY
         if self.aug is not None:
@@ -151,7 +150,7 @@ class SaladDataset(Dataset):
             image, lanes, params = draw(image, lanes, rng, self.aug)
         image = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)
         params = torch.from_numpy(params)
-        if not self.defer_images:
+        if self.aug is not None and not self.defer_images:
             image = augment_images(image[None], params[None], self.camera)[0].round().byte()
             params = torch.from_numpy(IDENTITY)
         t = lane_targets(lanes, self.camera)

@@ -170,9 +170,9 @@ def run(args: argparse.Namespace) -> int:
     optimiser = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
     if 'optimiser' in state:
         optimiser.load_state_dict(state['optimiser'])
+    on_gpu = args.device != 'cpu'
     # on a GPU the batch is zoomed and recoloured there, off the loader (augment.py)
-    dataset = SaladDataset(samples, model.cfg.camera, SaladAugment(),
-                           defer_images=args.device != 'cpu')
+    dataset = SaladDataset(samples, model.cfg.camera, SaladAugment(), defer_images=on_gpu)
     # what salad.pt records besides its step count: the same for every save of this slice
     meta = {'images': len(samples), 'drives': args.drives, 'frames': args.frames,
             'datasets': dataset_sources(cache),
@@ -186,7 +186,7 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise ConfigError(f'--batch: {exc}') from None
     loader = DataLoader(dataset, batch_sampler=batches, num_workers=args.workers,
-                        pin_memory=args.device != 'cpu')
+                        pin_memory=on_gpu)
     model.train()
     started = time.monotonic()
     for batch in loader:
