@@ -10,15 +10,22 @@ training images before the first step and saved with the weights. Runs in slices
 OUT/state.pt is written every --save-every steps, and --resume continues from it with the same
 draws; OUT/salad.pt, the weights alone with their config and provenance (and the datasets of
 the cache), is written at the end of every slice.
+
+`--minutes M` fits the whole command into M minutes of wall clock, as on a lent GPU: the drives
+rendered within --render-share of it are the training set (the rest are left out, their
+temporary files removed), and the learning-rate schedule runs on the time left rather than on
+--steps (then only a cap), so its cosine reaches zero as the time runs out and the last save is
+a finished schedule, whatever the machine's step rate. Such a run is one invocation: it is not
+resumed (start another from its salad.pt with --init).
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
 import math
+import multiprocessing
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -49,12 +56,17 @@ from fhld_ros.salad.targets import lane_targets, row_statistics
 
 ROW_STATS_SAMPLES = 400
 WARMUP_STEPS = 200
+DEFAULT_STEPS = 6000
+SAVE_MARGIN_S = 5.0  # --minutes: the training ends this long before the budget, for the save
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('out', type=Path, help='run folder (state.pt, salad.pt, cache/)')
     parser.add_argument('--cache', type=Path, help='shard folder (default OUT/cache)')
     parser.add_argument('--drives', type=int, default=200, help='simulated training drives')
+    parser.add_argument('--first-drive', type=int, default=0,
+                        help="the drives from this one of SALAD's training seeds on (a later "
+                        'run renders drives no earlier run saw)')
     parser.add_argument('--frames', type=int, default=10, help='images per drive, 1 s apart')
     parser.add_argument('--once', type=Path, metavar='ROOT',
                         help='also train on an ONCE-3DLanes folder (its --once-split)')
@@ -64,7 +76,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--openlane-labels', type=Path, metavar='DIR',
                         help='the training labels, e.g. ROOT/lane3d_1000/training (default: '
                         'every lane3d* folder under ROOT)')
-    parser.add_argument('--steps', type=int, default=6000, help='optimiser steps in all')
+    parser.add_argument('--steps', type=int,
+                        help=f'optimiser steps in all (default {DEFAULT_STEPS}; with --minutes '
+                        'a cap, none by default)')
+    parser.add_argument('--minutes', type=float,
+                        help='wall-clock budget of the command: rendering, then training on a '
+                        'schedule that ends with it (module doc)')
+    parser.add_argument('--render-share', type=float, default=0.3,
+                        help='--minutes: the share of the budget the rendering may take')
     parser.add_argument('--slice-steps', type=int, help='stop after this many (then --resume)')
     parser.add_argument('--batch', type=int, default=8)
     parser.add_argument('--lr', type=float, default=2e-3)
@@ -80,18 +99,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         'from thrashing')
 
 
-def build_cache(cache: Path, drives: int, frames: int, cfg: SaladConfig, workers: int) -> None:
+def build_cache(cache: Path, seeds: range, frames: int, cfg: SaladConfig, workers: int,
+                seconds: float | None = None) -> None:
+    """The shards of the seeds' drives not yet in cache; seconds: stop rendering then, and
+    leave the unfinished drives out."""
     cache.mkdir(parents=True, exist_ok=True)
-    seeds = [s for s in salad_seeds('train', drives)
-             if not (cache / f'sim_{s}{SHARD_SUFFIX}').exists()]
-    if not seeds:
+    todo = [s for s in seeds if not (cache / f'sim_{s}{SHARD_SUFFIX}').exists()]
+    if not todo:
         return
-    print(f'rendering {len(seeds)} drives x {frames} images into {cache}', file=sys.stderr)
+    print(f'rendering {len(todo)} drives x {frames} images into {cache}', file=sys.stderr)
     start = time.monotonic()
-    with ProcessPoolExecutor(max(workers, 1)) as pool:
-        list(pool.map(simulated_shard, [cache] * len(seeds), seeds, [frames] * len(seeds),
-                      [cfg.camera] * len(seeds)))
-    print(f'rendered in {time.monotonic() - start:.0f} s', file=sys.stderr)
+    with multiprocessing.Pool(max(workers, 1)) as pool:  # leaving it terminates the workers
+        rendering = pool.starmap_async(simulated_shard, [(cache, s, frames, cfg.camera)
+                                                         for s in todo], chunksize=1)
+        rendering.wait(seconds)
+        if rendering.ready():
+            rendering.get()  # a drive's error, raised here
+    done = sum((cache / f'sim_{s}{SHARD_SUFFIX}').exists() for s in todo)
+    for seed in todo:  # the temporary files of the drives cut off (dataset.write_shard)
+        (cache / f'.sim_{seed}.tmp{SHARD_SUFFIX}').unlink(missing_ok=True)
+    print(f'rendered {done} of {len(todo)} drives in {time.monotonic() - start:.0f} s',
+          file=sys.stderr)
 
 
 def build_datasets(cache: Path, args: argparse.Namespace, cfg: SaladConfig) -> None:
@@ -126,11 +154,27 @@ def measure_rows(samples: ShardSamples, cfg: SaladConfig) -> SaladConfig:
                                row_scale=tuple(map(float, scale)))
 
 
-def learning_rate(step: int, steps: int, peak: float) -> float:
-    """Linear warm-up, then cosine to zero."""
-    if step < WARMUP_STEPS:
-        return peak * (step + 1) / WARMUP_STEPS
-    return 0.5 * peak * (1 + math.cos(math.pi * min(step / steps, 1.0)))
+def learning_rate(step: int, progress: float, peak: float) -> float:
+    """A linear warm-up over the first steps times a cosine to zero as progress (the share of
+    the steps or of the training time done) goes from 0 to 1: the rate ends at zero however
+    few steps a short --minutes run makes."""
+    warm = min((step + 1) / WARMUP_STEPS, 1.0)
+    return warm * 0.5 * peak * (1 + math.cos(math.pi * min(progress, 1.0)))
+
+
+class Schedule:
+    """How far the run is: by its steps (`--steps`), or with --minutes by the training time
+    too, whichever is further; done at 1."""
+
+    def __init__(self, steps: int | None, seconds: float | None) -> None:
+        self.steps, self.seconds = steps, seconds
+        self.start = time.monotonic()
+
+    def progress(self, step: int) -> float:
+        by_steps = step / self.steps if self.steps else 0.0
+        if self.seconds is None:
+            return by_steps
+        return max(by_steps, (time.monotonic() - self.start) / self.seconds)
 
 
 def _start(args: argparse.Namespace, samples: ShardSamples) -> tuple[SaladNet, dict]:
@@ -140,12 +184,15 @@ def _start(args: argparse.Namespace, samples: ShardSamples) -> tuple[SaladNet, d
         if not state_path.exists():
             raise ConfigError(f'--resume: no {state_path} to continue')
         state = torch.load(state_path, map_location=args.device, weights_only=True)
+        if state.get('minutes'):
+            raise ConfigError(f'{state_path} is a --minutes run, whose schedule followed its '
+                              'clock: start another from its salad.pt with --init')
         model = SaladNet(config_from_plain(state['config']))
         model.load_state_dict(state['model'])
         return model.to(args.device), state
     if state_path.exists():
         raise ConfigError(f'{state_path} exists: --resume to continue it, or another OUT')
-    state = {'step': 0, 'command': ' '.join(sys.argv)}
+    state = {'step': 0, 'command': ' '.join(sys.argv), 'minutes': args.minutes or 0.0}
     if args.init is not None:
         model, info = load_salad(args.init)
         return model.to(args.device), {**state, 'init': str(args.init),
@@ -155,32 +202,69 @@ def _start(args: argparse.Namespace, samples: ShardSamples) -> tuple[SaladNet, d
     return SaladNet(cfg).to(args.device), state
 
 
+def _deadline(args: argparse.Namespace) -> float | None:
+    """The end of --minutes on the monotonic clock (None without it; then --steps defaults)."""
+    if args.minutes is None:
+        args.steps = args.steps or DEFAULT_STEPS
+        return None
+    if args.resume:
+        raise ConfigError('--minutes is one run from start to end, not a --resume: start '
+                          'another from OUT/salad.pt with --init')
+    if not args.minutes > 0 or not 0 < args.render_share < 1:
+        raise ConfigError(f'--minutes must be > 0 and --render-share within (0, 1), got '
+                          f'{args.minutes:g} and {args.render_share:g}')
+    return time.monotonic() + 60.0 * args.minutes
+
+
 def run(args: argparse.Namespace) -> int:
+    end = _deadline(args)
     if args.threads:
         torch.set_num_threads(args.threads)
     cache = args.cache or args.out / 'cache'
     args.out.mkdir(parents=True, exist_ok=True)
-    build_cache(cache, args.drives, args.frames, SaladConfig(), args.workers)
+    try:
+        seeds = salad_seeds('train', args.drives, args.first_drive)
+    except ValueError as exc:
+        raise ConfigError(f'--drives / --first-drive: {exc}') from None
+    build_cache(cache, seeds, args.frames, SaladConfig(), args.workers,
+                None if end is None else args.render_share * 60.0 * args.minutes)
     build_datasets(cache, args, SaladConfig())
     samples = ShardSamples(finished_shards(cache))
     if not len(samples):
         raise ConfigError(f'no training images in {cache}')
     model, state = _start(args, samples)
-    criterion = SaladCriterion(model.cfg).to(args.device)
     optimiser = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
     if 'optimiser' in state:
         optimiser.load_state_dict(state['optimiser'])
-    on_gpu = args.device != 'cpu'
-    # on a GPU the batch is zoomed and recoloured there, off the loader (augment.py)
-    dataset = SaladDataset(samples, model.cfg.camera, SaladAugment(), defer_images=on_gpu)
     # what salad.pt records besides its step count: the same for every save of this slice
     meta = {'images': len(samples), 'drives': args.drives, 'frames': args.frames,
             'datasets': dataset_sources(cache),
+            **({'first_drive': args.first_drive} if args.first_drive else {}),
+            **({'minutes': args.minutes} if args.minutes else {}),
             **{key: state[key] for key in ('init', 'init_steps') if key in state}}
-    step, stop = state['step'], min(args.steps, state['step'] + (args.slice_steps or args.steps))
-    print(f'{len(samples)} images; steps {step}..{stop} of {args.steps}', file=sys.stderr)
+    train_s = None if end is None else end - time.monotonic() - SAVE_MARGIN_S
+    if train_s is not None and train_s <= 0:
+        raise ConfigError(f'--minutes {args.minutes:g}: no time left to train after the '
+                          'rendering and packing')
+    _train(args, model, optimiser, samples, state, meta, Schedule(args.steps, train_s))
+    return 0
+
+
+def _train(args: argparse.Namespace, model: SaladNet, optimiser: torch.optim.Optimizer,
+           samples: ShardSamples, state: dict, meta: dict, schedule: Schedule) -> None:
+    """One slice: from state's step to --steps, --slice-steps later, or the schedule's end."""
+    criterion = SaladCriterion(model.cfg).to(args.device)
+    on_gpu = args.device != 'cpu'
+    # on a GPU the batch is zoomed and recoloured there, off the loader (augment.py)
+    dataset = SaladDataset(samples, model.cfg.camera, SaladAugment(), defer_images=on_gpu)
+    step = state['step']
+    stop = min(args.steps or sys.maxsize, step + (args.slice_steps or sys.maxsize))
+    print(f'{len(samples)} images; steps {step}..{stop if stop < sys.maxsize else "the end"}'
+          + (f' of {args.steps}' if args.steps else '')
+          + (f', the schedule ending in {schedule.seconds:.0f} s' if schedule.seconds else ''),
+          file=sys.stderr)
     if step >= stop:
-        return 0
+        return
     try:
         batches = EpochBatches(len(dataset), args.batch, step)
     except ValueError as exc:
@@ -188,10 +272,10 @@ def run(args: argparse.Namespace) -> int:
     loader = DataLoader(dataset, batch_sampler=batches, num_workers=args.workers,
                         pin_memory=on_gpu)
     model.train()
-    started = time.monotonic()
     for batch in loader:
+        lr = learning_rate(step, schedule.progress(step), args.lr)
         for group in optimiser.param_groups:
-            group['lr'] = learning_rate(step, args.steps, args.lr)
+            group['lr'] = lr
         batch = {k: v.to(args.device) for k, v in batch.items()}
         images = (augment_images(batch['image'], batch['augment'], model.cfg.camera)
                   if dataset.defer_images else batch['image'])
@@ -200,15 +284,16 @@ def run(args: argparse.Namespace) -> int:
         losses['loss'].backward()
         optimiser.step()
         step += 1
-        if step % 50 == 0 or step == stop:
+        done = step >= stop or schedule.progress(step) >= 1.0
+        if step % 50 == 0 or done:
             print(f'step {step} ' + ' '.join(f'{k} {float(v.detach()):.4f}' for k, v in
                                              losses.items())
-                  + f' time {time.monotonic() - started:.1f}', file=sys.stderr, flush=True)
-        if step % args.save_every == 0 or step == stop:
+                  + f' lr {lr:.2e} time {time.monotonic() - schedule.start:.1f}',
+                  file=sys.stderr, flush=True)
+        if step % args.save_every == 0 or done:
             _save(args, model, optimiser, state, step, meta)
-        if step >= stop:
+        if done:
             break
-    return 0
 
 
 def _save(args: argparse.Namespace, model: SaladNet, optimiser: torch.optim.Optimizer,

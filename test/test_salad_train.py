@@ -1,0 +1,77 @@
+"""`fhld salad-train` as a run: a wall-clock budget (--minutes) that renders what fits and ends
+its learning-rate schedule on time, fresh drives from --first-drive, and the clear errors."""
+from __future__ import annotations
+
+import re
+import time
+
+import pytest
+
+from fhld_ros.cli import main
+from fhld_ros.salad import train
+from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT, load_salad
+from fhld_ros.salad.config import SaladConfig
+from fhld_ros.salad.sim_source import salad_seeds
+
+PEAK = 1e-3
+
+
+def test_the_rate_warms_up_and_ends_at_zero_however_few_steps():
+    assert train.learning_rate(0, 0.0, PEAK) == pytest.approx(PEAK / train.WARMUP_STEPS)
+    assert train.learning_rate(train.WARMUP_STEPS, 0.0, PEAK) == pytest.approx(PEAK)
+    assert train.learning_rate(train.WARMUP_STEPS, 0.5, PEAK) == pytest.approx(PEAK / 2)
+    assert train.learning_rate(10, 1.0, PEAK) == 0.0  # a short run still ends at zero
+    assert train.learning_rate(10_000, 2.0, PEAK) == 0.0
+
+
+def test_a_timed_schedule_goes_by_the_clock_or_the_steps_whichever_is_further(monkeypatch):
+    now = [100.0]
+    monkeypatch.setattr(train.time, 'monotonic', lambda: now[0])
+    timed, by_steps, uncapped = (train.Schedule(1000, 60.0), train.Schedule(1000, None),
+                                 train.Schedule(None, 60.0))
+    now[0] += 30.0
+    assert timed.progress(100) == pytest.approx(0.5) and by_steps.progress(100) == 0.1
+    assert timed.progress(900) == pytest.approx(0.9)
+    assert uncapped.progress(10**9) == pytest.approx(0.5)
+
+
+def test_rendering_stops_at_its_time_and_leaves_no_partial_drive(tmp_path, capsys):
+    seeds = salad_seeds('train', 2, start=11)
+    train.build_cache(tmp_path, seeds, 1, SaladConfig(), workers=2, seconds=0.0)
+    assert list(tmp_path.iterdir()) == []  # cut off: no shard, no temporary file
+    assert 'rendered 0 of 2 drives' in capsys.readouterr().err
+    train.build_cache(tmp_path, seeds[:1], 1, SaladConfig(), workers=1)
+    assert [p.name for p in tmp_path.iterdir()] == [f'sim_{seeds[0]}.npz']
+
+
+def test_a_timed_run_ends_within_its_minutes_with_its_schedule_done(tmp_path, capsys):
+    out = tmp_path / 'run'
+    start = time.monotonic()
+    assert main(['salad-train', str(out), '--drives', '1', '--first-drive', '5', '--frames',
+                 '1', '--batch', '1', '--workers', '0', '--threads', '1', '--lr', str(PEAK),
+                 '--minutes', '0.3', '--render-share', '0.7',
+                 '--init', str(DEFAULT_SALAD_CHECKPOINT)]) == 0
+    assert time.monotonic() - start < 0.3 * 60 + 10  # the budget, and the save after it
+    fifth = salad_seeds('train', 1, start=5)[0]
+    assert [p.name for p in (out / 'cache').iterdir()] == [f'sim_{fifth}.npz']
+    steps = [(int(m[1]), float(m[2])) for m in
+             re.finditer(r'step (\d+) .* lr (\S+) time', capsys.readouterr().err)]
+    assert steps and steps[-1][1] < 0.05 * PEAK  # the cosine ran out with the time
+    _, info = load_salad(out / 'salad.pt')
+    assert info['meta']['minutes'] == 0.3 and info['meta']['first_drive'] == 5
+    assert info['meta']['steps'] == steps[-1][0] > 0
+    # its clock is gone: not resumed
+    assert main(['salad-train', str(out), '--drives', '0', '--resume', '--steps', '10']) == 2
+    assert 'is a --minutes run' in capsys.readouterr().err
+
+
+@pytest.mark.parametrize('flags, message', [
+    (['--minutes', '1', '--resume'], 'not a --resume'),
+    (['--minutes', '0'], 'must be > 0'),
+    (['--minutes', '1', '--render-share', '1'], 'within'),
+    (['--first-drive', str(10**6)], '--first-drive'),
+])
+def test_budget_and_drive_flags_are_checked(tmp_path, capsys, flags, message):
+    assert main(['salad-train', str(tmp_path / 'run'), '--drives', '1', *flags]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / 'run' / 'cache').exists()  # refused before any rendering
