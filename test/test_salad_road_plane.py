@@ -105,3 +105,19 @@ def test_simulated_drives_know_their_mount_and_scoring_uses_it_when_asked():
     assert recorder.roads[:2] == [None, None]
     assert recorder.roads[2] == dataclasses.replace(sample.road, until_m=30.0)
     assert recorder.roads[3] is None
+
+
+def test_a_drives_camera_moves_up_to_a_given_height_and_keeps_its_pitch_and_lens():
+    own = next(iter(simulated_samples(4_000_000, 1, (320, 180))))
+    tall = next(iter(simulated_samples(4_000_000, 1, (320, 180), height_m=2.6)))
+    assert tall.road.height_m == pytest.approx(2.6)
+    np.testing.assert_allclose(tall.road.normal, own.road.normal, atol=1e-9)  # same pitch
+    np.testing.assert_array_equal(tall.intrinsics, own.intrinsics)
+    near = np.concatenate(tall.lanes)
+    near = near[near[:, 2] < 15.0]
+    assert np.abs(near @ np.asarray(tall.road.normal) - 2.6).max() < 0.05  # the road below
+    assert np.abs(tall.image.astype(int) - own.image).mean() > 5  # it sees more road
+    with pytest.raises(ValueError, match='above the road'):
+        next(iter(simulated_samples(4_000_000, 1, (320, 180), height_m=0.0)))
+    from fhld_ros.cli import main
+    assert main(['salad-eval', '--drives', '1', '--camera-height', '-1']) == 2

@@ -12,7 +12,7 @@ data.cache.scenario_for_seed, its road class and speed the simulator's own draw.
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -92,9 +92,10 @@ def salad_seeds(split: str, count: int, start: int = 0) -> range:
 
 
 def drive_camera(seed: int, frames: int, size: tuple[int, int] = DEFAULT_SIZE,
-                 randomise: bool = True) -> SimCamera:
+                 randomise: bool = True, height_m: float | None = None) -> SimCamera:
     """The seed's simulator (long enough for `frames` frames FRAME_STRIDE sweeps apart) and
-    the camera on it."""
+    the camera on it; height_m: the camera moved to this height over the road (its pitch,
+    lens and principal point the seed's), e.g. a user's mount outside HEIGHT_RANGE_M."""
     if not 1 <= frames <= (MAX_SWEEPS - 1) // FRAME_STRIDE + 1:
         raise ValueError(f'frames must be within 1..{(MAX_SWEEPS - 1) // FRAME_STRIDE + 1}, '
                          f'got {frames}')
@@ -102,6 +103,10 @@ def drive_camera(seed: int, frames: int, size: tuple[int, int] = DEFAULT_SIZE,
     sim = Simulator(seed, sweeps=(frames - 1) * FRAME_STRIDE + 1, sensor=scenario['sensor'],
                     topology=scenario['topology'])
     draw = camera_for_seed(seed, randomise)
+    if height_m is not None:
+        if not height_m > 0:
+            raise ValueError(f'the camera must be above the road, got {height_m:g} m')
+        draw = replace(draw, height_m=float(height_m))
     width, height = size
     return SimCamera(sim, width, height, T_cloud_camera=draw.extrinsic(sim.mount.z),
                      K=draw.intrinsics((width, height)))
@@ -117,10 +122,12 @@ def visible_lanes(camera: SimCamera, k: int) -> tuple[CameraImage, list[np.ndarr
 
 
 def simulated_samples(seed: int, frames: int, size: tuple[int, int] = DEFAULT_SIZE,
-                      randomise: bool = True) -> Iterator[CameraLaneSample]:
+                      randomise: bool = True, height_m: float | None = None
+                      ) -> Iterator[CameraLaneSample]:
     """`frames` images of the seed's drive, FRAME_STRIDE sweeps apart, with their visible
-    lanes. randomise: the seed's own camera (camera_for_seed), else the fixed one."""
-    camera = drive_camera(seed, frames, size, randomise)
+    lanes. randomise: the seed's own camera (camera_for_seed), else the fixed one; height_m:
+    as drive_camera."""
+    camera = drive_camera(seed, frames, size, randomise, height_m)
     # the mount is known: the LiDAR frame is level, sim.mount.z over the road the car stands on
     T_road_camera = camera.T_cloud_camera.copy()
     T_road_camera[2, 3] += camera.sim.mount.z
