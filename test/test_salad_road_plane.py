@@ -14,7 +14,12 @@ from fhld_ros.salad.evaluate import score
 from fhld_ros.salad.parameters import CameraParams
 from fhld_ros.salad.road_plane import RoadPlane
 from fhld_ros.salad.sample import CameraLaneSample
-from fhld_ros.salad.sim_source import simulated_samples
+from fhld_ros.salad.sim_source import (
+    HEIGHT_RANGE_M,
+    camera_for_seed,
+    salad_seeds,
+    simulated_samples,
+)
 from fhld_ros.salad.targets import lane_targets, row_statistics
 from fhld_ros.salad.virtual_camera import VirtualCamera
 from msg_adapters.odometry import euler_to_matrix
@@ -107,9 +112,9 @@ def test_simulated_drives_know_their_mount_and_scoring_uses_it_when_asked():
     assert recorder.roads[3] is None
 
 
-def test_a_drives_camera_moves_up_to_a_given_height_and_keeps_its_pitch_and_lens():
+def test_a_drives_camera_moves_to_a_given_height_and_keeps_its_pitch_and_lens():
     own = next(iter(simulated_samples(4_000_000, 1, (320, 180))))
-    tall = next(iter(simulated_samples(4_000_000, 1, (320, 180), height_m=2.6)))
+    tall = next(iter(simulated_samples(4_000_000, 1, (320, 180), heights_m=(2.6, 2.6))))
     assert tall.road.height_m == pytest.approx(2.6)
     np.testing.assert_allclose(tall.road.normal, own.road.normal, atol=1e-9)  # same pitch
     np.testing.assert_array_equal(tall.intrinsics, own.intrinsics)
@@ -117,7 +122,14 @@ def test_a_drives_camera_moves_up_to_a_given_height_and_keeps_its_pitch_and_lens
     near = near[near[:, 2] < 15.0]
     assert np.abs(near @ np.asarray(tall.road.normal) - 2.6).max() < 0.05  # the road below
     assert np.abs(tall.image.astype(int) - own.image).mean() > 5  # it sees more road
-    with pytest.raises(ValueError, match='above the road'):
-        next(iter(simulated_samples(4_000_000, 1, (320, 180), height_m=0.0)))
+    # a range: each seed at the same place in it as in the seeds' own range
+    seeds = salad_seeds('train', 20)
+    own_h = np.array([camera_for_seed(s).height_m for s in seeds])
+    tall_h = np.array([camera_for_seed(s, heights_m=(2.4, 2.8)).height_m for s in seeds])
+    lo, hi = HEIGHT_RANGE_M
+    np.testing.assert_allclose(tall_h, 2.4 + (own_h - lo) / (hi - lo) * 0.4, atol=1e-9)
+    with pytest.raises(ValueError, match='0 < low <= high'):
+        camera_for_seed(seeds[0], heights_m=(2.0, 1.9))
     from fhld_ros.cli import main
-    assert main(['salad-eval', '--drives', '1', '--camera-height', '-1']) == 2
+    for bad in (['-1'], ['2', '1'], ['1', '2', '3']):
+        assert main(['salad-eval', '--drives', '1', '--camera-height', *bad]) == 2

@@ -5,13 +5,15 @@ from __future__ import annotations
 import re
 import time
 
+import numpy as np
 import pytest
 
 from fhld_ros.cli import main
 from fhld_ros.salad import train
 from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT, load_salad
 from fhld_ros.salad.config import SaladConfig
-from fhld_ros.salad.sim_source import salad_seeds
+from fhld_ros.salad.dataset import ShardSamples
+from fhld_ros.salad.sim_source import camera_for_seed, salad_seeds
 
 PEAK = 1e-3
 
@@ -75,3 +77,20 @@ def test_budget_and_drive_flags_are_checked(tmp_path, capsys, flags, message):
     assert main(['salad-train', str(tmp_path / 'run'), '--drives', '1', *flags]) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / 'run' / 'cache').exists()  # refused before any rendering
+
+
+def test_drives_for_a_users_mount_are_rendered_and_named_apart(tmp_path):
+    out = tmp_path / 'run'
+    assert main(['salad-train', str(out), '--drives', '1', '--frames', '1', '--steps', '1',
+                 '--batch', '1', '--workers', '0', '--threads', '1', '--camera-height', '2.6',
+                 '--init', str(DEFAULT_SALAD_CHECKPOINT)]) == 0
+    seed = salad_seeds('train', 1)[0]
+    # the seeds' own cameras would be sim_<seed>.npz: a cache never mixes the two unasked
+    assert [p.name for p in (out / 'cache').iterdir()] == [f'sim_{seed}_h2.60-2.60.npz']
+    sample = ShardSamples([out / 'cache' / f'sim_{seed}_h2.60-2.60.npz']).lanes[0]
+    pitch = np.radians(camera_for_seed(seed).pitch_deg)
+    near = np.concatenate(sample)
+    near = near[near[:, 2] < 15.0]
+    below = near @ np.array([0.0, np.cos(pitch), np.sin(pitch)])  # the level road's normal
+    assert abs(np.median(below) - 2.6) < 0.03 and np.abs(below - 2.6).max() < 0.15  # crowns
+    assert load_salad(out / 'salad.pt')[1]['meta']['camera_heights_m'] == [2.6, 2.6]

@@ -37,6 +37,11 @@ def to_virtual(sample: CameraLaneSample, camera: VirtualCamera) -> CameraLaneSam
                             sample.lanes, sample.name)
 
 
+def temporary_path(path: Path) -> Path:
+    """Where a shard is written before it is renamed to path (finished_shards skips it)."""
+    return path.with_name(f'.{path.stem}.tmp{SHARD_SUFFIX}')
+
+
 def write_shard(path: Path, samples: Iterable[CameraLaneSample], camera: VirtualCamera) -> int:
     """Pack the samples, resampled to the camera, into one shard; returns how many."""
     images, lanes, per_sample = [], [], []
@@ -46,7 +51,7 @@ def write_shard(path: Path, samples: Iterable[CameraLaneSample], camera: Virtual
         lanes.extend(kept)
         per_sample.append(len(kept))
     points = np.concatenate(lanes) if lanes else np.zeros((0, 3), dtype=np.float32)
-    tmp = path.with_name(f'.{path.stem}.tmp{SHARD_SUFFIX}')
+    tmp = temporary_path(path)
     np.savez(tmp, images=np.stack(images) if images else
              np.zeros((0, camera.height, camera.width, 3), dtype=np.uint8),
              points=points, lane_ends=np.cumsum([len(lane) for lane in lanes], dtype=np.int64),
@@ -55,14 +60,23 @@ def write_shard(path: Path, samples: Iterable[CameraLaneSample], camera: Virtual
     return len(images)
 
 
-def simulated_shard(out_dir: Path, seed: int, frames: int, camera: VirtualCamera) -> Path:
-    """The shard of one simulated drive (skipped when it exists). Rendered at 1.5 times the
-    virtual camera's width, so the resampling averages pixels (antialiasing) as it would a
-    real high-resolution image."""
-    path = out_dir / f'sim_{seed}{SHARD_SUFFIX}'
+def simulated_shard_path(out_dir: Path, seed: int,
+                         heights_m: tuple[float, float] | None = None) -> Path:
+    """Where the drive's shard lives; a camera height range other than the seeds' own is in
+    the name, so drives rendered for another mount are never taken for these."""
+    mount = '' if heights_m is None else f'_h{heights_m[0]:.2f}-{heights_m[1]:.2f}'
+    return out_dir / f'sim_{seed}{mount}{SHARD_SUFFIX}'
+
+
+def simulated_shard(out_dir: Path, seed: int, frames: int, camera: VirtualCamera,
+                    heights_m: tuple[float, float] | None = None) -> Path:
+    """The shard of one simulated drive (skipped when it exists; heights_m: its camera height
+    range, sim_source.camera_for_seed). Rendered at 1.5 times the virtual camera's width, so
+    the resampling averages pixels (antialiasing) as it would a real high-resolution image."""
+    path = simulated_shard_path(out_dir, seed, heights_m)
     if not path.exists():
         size = (3 * camera.width // 2, round(3 * camera.width // 2 * 9 / 16))
-        write_shard(path, simulated_samples(seed, frames, size), camera)
+        write_shard(path, simulated_samples(seed, frames, size, heights_m=heights_m), camera)
     return path
 
 

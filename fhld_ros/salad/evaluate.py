@@ -11,8 +11,8 @@ replaces heads by their targets (perfect_maps.py), to see which head the F1 is l
 `--road-plane M` gives the near lanes their depth from the road under the camera where the
 source knows its mount (the simulator's drives; road_plane.py), up to M metres: SALAD with a
 known mount, not the paper's SALAD. `--camera-height M` moves every drive's camera to M metres
-over the road (each keeps its pitch and lens): how a mount outside the training range (1.2-2.0
-m) fares.
+over the road (each keeps its pitch and lens; `LOW HIGH`: a range): how a mount outside the
+training range (1.2-2.0 m) fares.
 Lanes are compared in a camera-centred top view (metrics.py takes x forward, y left, z up:
 the optical frame turned, not moved).
 """
@@ -43,7 +43,12 @@ from fhld_ros.salad.once_format import read_once
 from fhld_ros.salad.openlane_format import read_openlane
 from fhld_ros.salad.perfect_maps import HEADS, PerfectMaps
 from fhld_ros.salad.sample import CameraLaneSample
-from fhld_ros.salad.sim_source import salad_seeds, simulated_samples
+from fhld_ros.salad.sim_source import (
+    add_camera_height,
+    camera_heights,
+    salad_seeds,
+    simulated_samples,
+)
 
 TAUS = (0.15, 0.30, 0.50)
 HALF_SIZE_M = 60.0  # the top view compared: 60 m ahead, 60 m to each side
@@ -71,9 +76,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the near lanes' depth from the road plane of the camera's known "
                              'mount (simulated drives), up to M metres (0: off; 40 chosen on '
                              'the validation images)')
-    parser.add_argument('--camera-height', type=float, metavar='M',
-                        help="the simulated drives' cameras moved to M metres over the road "
-                             '(default: each seed its own, 1.2-2.0 m)')
+    add_camera_height(parser)
     parser.add_argument('--json', action='store_true', help='print one JSON object last')
 
 
@@ -129,9 +132,9 @@ def _by_range(errors: np.ndarray) -> dict[str, dict]:
 
 
 def held_out_drives(drives: int, frames: int, split: str = 'test',
-                    camera_height_m: float | None = None) -> Iterator[CameraLaneSample]:
+                    heights_m: tuple[float, float] | None = None) -> Iterator[CameraLaneSample]:
     for seed in salad_seeds(split, drives):
-        yield from simulated_samples(seed, frames, height_m=camera_height_m)
+        yield from simulated_samples(seed, frames, heights_m=heights_m)
 
 
 def _print(name: str, rows: dict[str, dict]) -> None:
@@ -149,15 +152,14 @@ def _print(name: str, rows: dict[str, dict]) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.drives < 0 or args.frames < 1 or args.road_plane < 0:
         raise ConfigError('--drives and --road-plane must be >= 0 and --frames >= 1')
-    if args.camera_height is not None and not args.camera_height > 0:
-        raise ConfigError(f'--camera-height must be > 0 m, got {args.camera_height:g}')
+    heights = camera_heights(args)
     detector = SaladDetector(args.checkpoint, flip_average=args.flip_average)
     perfect = PerfectMaps(detector, args.perfect) if args.perfect else None
     sources = {}
     if args.drives:
         split = 'val' if args.validation else 'test'
         sources['validation' if args.validation else 'simulated'] = held_out_drives(
-            args.drives, args.frames, split, args.camera_height)
+            args.drives, args.frames, split, heights)
     if args.once:
         sources['once'] = read_once(args.once, args.once_split)
     if args.openlane:

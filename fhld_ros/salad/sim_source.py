@@ -11,12 +11,14 @@ data.cache.scenario_for_seed, its road class and speed the simulator's own draw.
 """
 from __future__ import annotations
 
+import argparse
 from collections.abc import Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
 from fhld_ros.data.cache import scenario_for_seed
+from fhld_ros.errors import ConfigError
 from fhld_ros.salad.road_plane import RoadPlane
 from fhld_ros.salad.sample import CameraLaneSample
 from fhld_ros.sim.camera import (
@@ -70,15 +72,48 @@ class CameraDraw:
         return camera_mount(MOUNT_FORWARD_M, lidar_height_m - self.height_m, self.pitch_deg)
 
 
-def camera_for_seed(seed: int, randomise: bool = True) -> CameraDraw:
-    """The seed's camera, from its own generator (the scene's draws stay what they are)."""
+def check_heights(heights_m: tuple[float, float]) -> tuple[float, float]:
+    """A camera height range (low, high) in metres, checked."""
+    low, high = map(float, heights_m)
+    if not 0 < low <= high:
+        raise ValueError(f'camera heights must be 0 < low <= high metres above the road, got '
+                         f'{low:g}..{high:g}')
+    return low, high
+
+
+def add_camera_height(parser: argparse.ArgumentParser) -> None:
+    """--camera-height M [HIGH], for the commands that render drives."""
+    parser.add_argument('--camera-height', type=float, nargs='+', metavar='M',
+                        help='the simulated cameras at M metres over the road, or drawn within '
+                        f'M..HIGH (default: each seed its own, {HEIGHT_RANGE_M[0]:g}-'
+                        f'{HEIGHT_RANGE_M[1]:g} m), each keeping its pitch and lens')
+
+
+def camera_heights(args: argparse.Namespace) -> tuple[float, float] | None:
+    """--camera-height as a checked (low, high) range, None without it."""
+    if args.camera_height is None:
+        return None
+    if len(args.camera_height) > 2:
+        raise ConfigError(f'--camera-height takes M or LOW HIGH, got {args.camera_height}')
+    try:
+        return check_heights((args.camera_height[0], args.camera_height[-1]))
+    except ValueError as exc:
+        raise ConfigError(f'--camera-height: {exc}') from None
+
+
+def camera_for_seed(seed: int, randomise: bool = True,
+                    heights_m: tuple[float, float] | None = None) -> CameraDraw:
+    """The seed's camera, from its own generator (the scene's draws stay what they are);
+    heights_m: its height from this range instead of HEIGHT_RANGE_M, at the same place in it
+    (a user's mount, e.g. a truck's 2.6 m; (M, M): every camera at M), the rest unchanged."""
     if not randomise:
         return CameraDraw(FIXED_HEIGHT_M, PITCH_DEG, HFOV_DEG)
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5A1AD]))
-    height, pitch, hfov = (float(rng.uniform(*r)) for r in
-                           (HEIGHT_RANGE_M, PITCH_RANGE_DEG, HFOV_RANGE_DEG))
+    share, pitch, hfov = (float(rng.uniform(*r)) for r in
+                          ((0.0, 1.0), PITCH_RANGE_DEG, HFOV_RANGE_DEG))
+    low, high = HEIGHT_RANGE_M if heights_m is None else check_heights(heights_m)
     du, dv = rng.uniform(-PRINCIPAL_JITTER, PRINCIPAL_JITTER, 2)
-    return CameraDraw(height, pitch, hfov, (float(du), float(dv)))
+    return CameraDraw(low + share * (high - low), pitch, hfov, (float(du), float(dv)))
 
 
 def salad_seeds(split: str, count: int, start: int = 0) -> range:
@@ -92,21 +127,17 @@ def salad_seeds(split: str, count: int, start: int = 0) -> range:
 
 
 def drive_camera(seed: int, frames: int, size: tuple[int, int] = DEFAULT_SIZE,
-                 randomise: bool = True, height_m: float | None = None) -> SimCamera:
+                 randomise: bool = True, heights_m: tuple[float, float] | None = None
+                 ) -> SimCamera:
     """The seed's simulator (long enough for `frames` frames FRAME_STRIDE sweeps apart) and
-    the camera on it; height_m: the camera moved to this height over the road (its pitch,
-    lens and principal point the seed's), e.g. a user's mount outside HEIGHT_RANGE_M."""
+    the camera on it (camera_for_seed)."""
     if not 1 <= frames <= (MAX_SWEEPS - 1) // FRAME_STRIDE + 1:
         raise ValueError(f'frames must be within 1..{(MAX_SWEEPS - 1) // FRAME_STRIDE + 1}, '
                          f'got {frames}')
     scenario = scenario_for_seed(seed)
     sim = Simulator(seed, sweeps=(frames - 1) * FRAME_STRIDE + 1, sensor=scenario['sensor'],
                     topology=scenario['topology'])
-    draw = camera_for_seed(seed, randomise)
-    if height_m is not None:
-        if not height_m > 0:
-            raise ValueError(f'the camera must be above the road, got {height_m:g} m')
-        draw = replace(draw, height_m=float(height_m))
+    draw = camera_for_seed(seed, randomise, heights_m)
     width, height = size
     return SimCamera(sim, width, height, T_cloud_camera=draw.extrinsic(sim.mount.z),
                      K=draw.intrinsics((width, height)))
@@ -122,12 +153,12 @@ def visible_lanes(camera: SimCamera, k: int) -> tuple[CameraImage, list[np.ndarr
 
 
 def simulated_samples(seed: int, frames: int, size: tuple[int, int] = DEFAULT_SIZE,
-                      randomise: bool = True, height_m: float | None = None
+                      randomise: bool = True, heights_m: tuple[float, float] | None = None
                       ) -> Iterator[CameraLaneSample]:
     """`frames` images of the seed's drive, FRAME_STRIDE sweeps apart, with their visible
-    lanes. randomise: the seed's own camera (camera_for_seed), else the fixed one; height_m:
-    as drive_camera."""
-    camera = drive_camera(seed, frames, size, randomise, height_m)
+    lanes. randomise: the seed's own camera (camera_for_seed, heights_m its height range),
+    else the fixed one."""
+    camera = drive_camera(seed, frames, size, randomise, heights_m)
     # the mount is known: the LiDAR frame is level, sim.mount.z over the road the car stands on
     T_road_camera = camera.T_cloud_camera.copy()
     T_road_camera[2, 3] += camera.sim.mount.z

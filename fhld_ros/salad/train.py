@@ -37,7 +37,6 @@ from fhld_ros.salad.augment import SaladAugment, augment_images
 from fhld_ros.salad.checkpoint import config_from_plain, load_salad, save_salad
 from fhld_ros.salad.config import SaladConfig
 from fhld_ros.salad.dataset import (
-    SHARD_SUFFIX,
     EpochBatches,
     SaladDataset,
     ShardSamples,
@@ -45,13 +44,15 @@ from fhld_ros.salad.dataset import (
     dataset_sources,
     finished_shards,
     simulated_shard,
+    simulated_shard_path,
+    temporary_path,
 )
 from fhld_ros.salad.losses import SaladCriterion
 from fhld_ros.salad.model import SaladNet
 from fhld_ros.salad.once_format import SPLITS as ONCE_SPLITS
 from fhld_ros.salad.once_format import read_once
 from fhld_ros.salad.openlane_format import read_openlane
-from fhld_ros.salad.sim_source import salad_seeds
+from fhld_ros.salad.sim_source import add_camera_height, camera_heights, salad_seeds
 from fhld_ros.salad.targets import lane_targets, row_statistics
 
 ROW_STATS_SAMPLES = 400
@@ -68,6 +69,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the drives from this one of SALAD's training seeds on (a later "
                         'run renders drives no earlier run saw)')
     parser.add_argument('--frames', type=int, default=10, help='images per drive, 1 s apart')
+    add_camera_height(parser)
     parser.add_argument('--once', type=Path, metavar='ROOT',
                         help='also train on an ONCE-3DLanes folder (its --once-split)')
     parser.add_argument('--once-split', default='train', choices=ONCE_SPLITS)
@@ -100,24 +102,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def build_cache(cache: Path, seeds: range, frames: int, cfg: SaladConfig, workers: int,
-                seconds: float | None = None) -> None:
+                seconds: float | None = None, heights_m: tuple[float, float] | None = None
+                ) -> None:
     """The shards of the seeds' drives not yet in cache; seconds: stop rendering then, and
-    leave the unfinished drives out."""
+    leave the unfinished drives out; heights_m: the cameras' height range (--camera-height)."""
     cache.mkdir(parents=True, exist_ok=True)
-    todo = [s for s in seeds if not (cache / f'sim_{s}{SHARD_SUFFIX}').exists()]
+    paths = {s: simulated_shard_path(cache, s, heights_m) for s in seeds}
+    todo = [s for s in seeds if not paths[s].exists()]
     if not todo:
         return
     print(f'rendering {len(todo)} drives x {frames} images into {cache}', file=sys.stderr)
     start = time.monotonic()
     with multiprocessing.Pool(max(workers, 1)) as pool:  # leaving it terminates the workers
-        rendering = pool.starmap_async(simulated_shard, [(cache, s, frames, cfg.camera)
-                                                         for s in todo], chunksize=1)
+        rendering = pool.starmap_async(simulated_shard, [(cache, s, frames, cfg.camera,
+                                                          heights_m) for s in todo],
+                                       chunksize=1)
         rendering.wait(seconds)
         if rendering.ready():
             rendering.get()  # a drive's error, raised here
-    done = sum((cache / f'sim_{s}{SHARD_SUFFIX}').exists() for s in todo)
+    done = sum(paths[s].exists() for s in todo)
     for seed in todo:  # the temporary files of the drives cut off (dataset.write_shard)
-        (cache / f'.sim_{seed}.tmp{SHARD_SUFFIX}').unlink(missing_ok=True)
+        temporary_path(paths[seed]).unlink(missing_ok=True)
     print(f'rendered {done} of {len(todo)} drives in {time.monotonic() - start:.0f} s',
           file=sys.stderr)
 
@@ -226,8 +231,9 @@ def run(args: argparse.Namespace) -> int:
         seeds = salad_seeds('train', args.drives, args.first_drive)
     except ValueError as exc:
         raise ConfigError(f'--drives / --first-drive: {exc}') from None
+    heights = camera_heights(args)
     build_cache(cache, seeds, args.frames, SaladConfig(), args.workers,
-                None if end is None else args.render_share * 60.0 * args.minutes)
+                None if end is None else args.render_share * 60.0 * args.minutes, heights)
     build_datasets(cache, args, SaladConfig())
     samples = ShardSamples(finished_shards(cache))
     if not len(samples):
@@ -241,6 +247,7 @@ def run(args: argparse.Namespace) -> int:
             'datasets': dataset_sources(cache),
             **({'first_drive': args.first_drive} if args.first_drive else {}),
             **({'minutes': args.minutes} if args.minutes else {}),
+            **({'camera_heights_m': list(heights)} if heights else {}),
             **{key: state[key] for key in ('init', 'init_steps') if key in state}}
     train_s = None if end is None else end - time.monotonic() - SAVE_MARGIN_S
     if train_s is not None and train_s <= 0:
