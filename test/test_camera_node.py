@@ -167,7 +167,8 @@ def test_a_missing_checkpoint_or_a_bad_parameter_is_one_line_and_exit_2(tmp_path
     missing = _node_error('-p', f'checkpoint:={tmp_path / "none.pt"}')
     assert missing.returncode == 2, missing.stderr
     assert missing.stderr.strip() == (f'camera_lane_detector: error: SALAD checkpoint '
-                                      f'{tmp_path / "none.pt"} does not exist')
+                                      f'{tmp_path / "none.pt"} does not exist (the shipped '
+                                      'weights by name: salad, salad_wide_mount)')
     bad = _node_error('-p', 'rate_hz:=fast')
     assert bad.returncode == 2, bad.stderr
     assert bad.stderr.strip() == ('camera_lane_detector: error: rate_hz must be a number with '

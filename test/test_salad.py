@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -299,6 +300,34 @@ def test_the_shipped_weights_find_the_lanes_of_a_held_out_simulated_image():
     # in the image the lanes lie on the GT lines (their depth is the weak part, salad.md)
     on_gt = [np.median(gt.query(project(lane, sample.intrinsics))[0]) < 3.0 for lane in lanes]
     assert len(lanes) >= 4 and sum(on_gt) >= 4, (len(lanes), on_gt)
+
+
+def test_the_wide_mount_weights_place_a_tall_cameras_near_lanes():
+    from fhld_ros.salad.sim_source import salad_seeds, simulated_samples
+
+    # by name: the shipped file, wherever the package is installed
+    detector = SaladDetector('salad_wide_mount')
+    assert detector.info['meta']['camera_heights_m'] == [1.2, 3.0]
+    sample = next(simulated_samples(salad_seeds('test', 1)[0], 1, heights_m=(2.7, 2.7)))
+    lanes, _ = detector(sample.image, sample.intrinsics)
+    points = np.concatenate(lanes)
+    near = points[(points[:, 2] > 5) & (points[:, 2] < 25)]  # optical frame: z forward
+    gap = cKDTree(np.concatenate(sample.lanes)).query(near)[0]
+    # the 1.2-2.0 m weights put these lanes a median 1.26 m off (salad.md)
+    assert len(lanes) >= 4 and np.median(gap) < 0.3, (len(lanes), np.median(gap))
+
+
+def test_shipped_weights_load_by_name_and_a_users_file_comes_first(tmp_path, monkeypatch):
+    from fhld_ros.salad.checkpoint import SHIPPED_DIR, resolve_salad_checkpoint
+
+    for name in ('salad', 'salad.pt', 'salad_wide_mount', 'salad_wide_mount.pt'):
+        assert resolve_salad_checkpoint(name) == SHIPPED_DIR / f'{name.removesuffix(".pt")}.pt'
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / 'salad.pt').write_bytes(b'a file of the same name')
+    assert resolve_salad_checkpoint('salad.pt') == Path('salad.pt')
+    assert resolve_salad_checkpoint('sub/salad.pt') == Path('sub/salad.pt')
+    with pytest.raises(SaladCheckpointError, match='by name: salad, salad_wide_mount'):
+        load_salad('salad_tall')
 
 
 def test_an_autolabel_once_json_gives_a_real_image_its_lanes(tmp_path):

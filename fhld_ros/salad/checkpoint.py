@@ -19,7 +19,8 @@ from fhld_ros.salad.virtual_camera import VirtualCamera
 
 FORMAT = 'salad-checkpoint'
 FORMAT_VERSION = 1
-DEFAULT_SALAD_CHECKPOINT = Path(__file__).resolve().parent.parent / 'checkpoints' / 'salad.pt'
+SHIPPED_DIR = Path(__file__).resolve().parent.parent / 'checkpoints'
+DEFAULT_SALAD_CHECKPOINT = SHIPPED_DIR / 'salad.pt'
 
 
 class SaladCheckpointError(ConfigError):
@@ -61,11 +62,28 @@ def save_salad(path: str | os.PathLike, model: SaladNet, train_command: str,
     os.replace(tmp, path)
 
 
-def load_salad(path: str | os.PathLike, device: str = 'cpu') -> tuple[SaladNet, dict[str, Any]]:
-    """(model in eval mode, the file's payload without its weights)."""
+def shipped_names() -> list[str]:
+    return sorted(path.stem for path in SHIPPED_DIR.glob('salad*.pt'))
+
+
+def resolve_salad_checkpoint(path: str | os.PathLike) -> Path:
+    """path as given; where no such file exists and it names no folder, the shipped weights of
+    that name (`salad_wide_mount` or `salad_wide_mount.pt`), so a user need not know where the
+    package is installed."""
     path = Path(path)
+    if path.is_file() or path.parent != Path('.'):
+        return path
+    shipped = SHIPPED_DIR / f'{path.name.removesuffix(".pt")}.pt'
+    return shipped if shipped.is_file() else path
+
+
+def load_salad(path: str | os.PathLike, device: str = 'cpu') -> tuple[SaladNet, dict[str, Any]]:
+    """(model in eval mode, the file's payload without its weights); path as
+    resolve_salad_checkpoint takes it."""
+    path = resolve_salad_checkpoint(path)
     if not path.is_file():
-        raise SaladCheckpointError(f'SALAD checkpoint {path} does not exist')
+        raise SaladCheckpointError(f'SALAD checkpoint {path} does not exist (the shipped '
+                                   f'weights by name: {", ".join(shipped_names())})')
     try:
         payload = torch.load(path, map_location=device, weights_only=True)
     except Exception as exc:  # truncated, not a torch file, or an object weights_only refuses

@@ -31,7 +31,8 @@ class CameraParams:
         'lanes', 'output MarkerArray topic; ego lane Paths go to <lanes_topic>/ego_left|right',
         length='[1, inf)')
     checkpoint: str = documented(
-        '', 'SALAD weights (.pt); empty = the shipped fhld_ros/checkpoints/salad.pt')
+        '', 'SALAD weights (.pt), or the name of shipped ones: empty = salad (cameras 1.2-2.0 m '
+        'over the road), salad_wide_mount (1.2-3.0 m)')
     model_threads: int = documented(
         0, 'CPU threads for the model; 0 = auto: 1 (two OpenMP threads beside the executor and '
         'other work on a 2-core CPU ran the model up to 40x slower)', range='[0, 1024]')
