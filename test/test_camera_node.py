@@ -234,6 +234,37 @@ def test_lanes_come_out_in_the_output_frame_with_ego_lanes_and_the_seen_ground()
     np.testing.assert_array_equal(flu[0], flu[4])
 
 
+class TrainedOn(RoadDetector):
+    """RoadDetector with a checkpoint's meta: simulated drives with cameras `heights` up."""
+
+    def __init__(self, heights: list[float] | None = None, datasets: tuple = ()) -> None:
+        super().__init__()
+        self.info = {'meta': {'drives': 896, 'datasets': list(datasets),
+                              **({'camera_heights_m': heights} if heights else {})}}
+
+
+@pytest.mark.parametrize('detector, height, advice', [
+    (TrainedOn(), 1.5, None), (TrainedOn(), 2.05, None),  # within 1.2-2.0 m, or just above
+    (TrainedOn(), 2.6, 'use checkpoint:=salad_wide_mount'),
+    (TrainedOn([1.2, 3.0]), 2.6, None),
+    (TrainedOn([1.2, 3.0]), 3.5, '--camera-height 3.3 3.7'),
+    (TrainedOn(), 0.8, '--camera-height 0.6 1.0'),
+    (TrainedOn(datasets=['once: /data']), 2.6, None),  # a dataset's mounts are unknown
+    (RoadDetector(), 2.6, None)])  # weights that say nothing
+def test_a_mount_beyond_the_trained_heights_is_warned_about(detector, height, advice):
+    pose = (0.0, 0.0, height, -np.pi / 2 - np.radians(2.0), 0.0, -np.pi / 2)
+    params = CameraParams(output_frame='base_footprint', camera_to_output=pose,
+                          road_plane_m=40.0)
+    warning = CameraPipeline(params, detector).mount_warning
+    if advice is None:
+        assert warning is None
+    else:
+        assert f'the camera {height:.2f} m above the road' in warning and advice in warning
+    # without road_plane_m the output frame's z = 0 need not be the road: nothing to say
+    no_plane = dataclasses.replace(params, road_plane_m=0.0)
+    assert CameraPipeline(no_plane, detector).mount_warning is None
+
+
 class NoLanes(RoadDetector):
     """Finds no lane."""
 

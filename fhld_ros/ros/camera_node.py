@@ -48,6 +48,8 @@ class CameraLaneDetectorNode(Node):
                 self.params.checkpoint, self.params.model_threads, self.params.model_runtime,
                 self.params.flip_average))
         self.get_logger().info(f'parameters: {self.params}')
+        if self.pipeline.mount_warning:
+            self.get_logger().warning(self.pipeline.mount_warning)
         self.lock = threading.Lock()  # the pipeline: input callbacks vs taking an image
         self.detecting = threading.Lock()
         self.said_distorted = False

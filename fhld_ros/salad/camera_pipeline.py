@@ -35,7 +35,7 @@ from fhld_ros.errors import ConfigError
 from fhld_ros.lane_output import LaneIdTracker, LaneOutput, ego_lane_bounds
 from fhld_ros.pipeline import DUE_FRACTION
 from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT
-from fhld_ros.salad.config import SaladConfig
+from fhld_ros.salad.config import HEIGHT_RANGE_M, WIDE_MOUNT_HEIGHTS_M, SaladConfig
 from fhld_ros.salad.detector import SaladDetector
 from fhld_ros.salad.parameters import CameraParams
 from fhld_ros.salad.road_plane import RoadPlane
@@ -53,6 +53,7 @@ PLANE_SPREAD_M = 1.5
 PLANE_MIN_POINTS = 10
 PLANE_HEIGHT_M = (0.3, 10.0)
 PLANE_MAX_TILT_DEG = 15.0
+MOUNT_MARGIN_M = 0.1  # beyond the trained heights by more, the near depth is off (salad.md)
 REGION_PX_PER_UNIT = 1000.0  # the region the model sees, as a camera: pixels per tan(angle)
 # model_threads 0: one torch thread (two beside other work on 2 cores: up to 40x slower)
 AUTO_THREADS = 1
@@ -119,6 +120,35 @@ def load_camera_detector(checkpoint: str = '', threads: int = 0, runtime: str = 
             raise
         raise ConfigError(f'{exc} (the shipped weights; name others with the checkpoint '
                           'parameter, or fhld replay --checkpoint)') from exc
+
+
+def trained_heights(info: dict[str, Any]) -> tuple[float, float] | None:
+    """The camera heights (m) of the simulated drives the weights were last trained on; None
+    when they saw no drives, or datasets whose mounts are unknown."""
+    meta = info.get('meta', {})
+    if not meta.get('drives') or meta.get('datasets'):
+        return None
+    low, high = meta.get('camera_heights_m', HEIGHT_RANGE_M)
+    return float(low), float(high)
+
+
+def mount_warning(info: dict[str, Any], road: RoadPlane | None) -> str | None:
+    """What to do when the known mount's camera sits outside the heights the weights were
+    trained on (their lanes then lie as if it sat within them, docs/salad.md), or None."""
+    heights = trained_heights(info)
+    if road is None or heights is None:
+        return None
+    height, (low, high) = road.height_m, heights
+    if low - MOUNT_MARGIN_M <= height <= high + MOUNT_MARGIN_M:
+        return None
+    wide_low, wide_high = WIDE_MOUNT_HEIGHTS_M
+    advice = ('checkpoint:=salad_wide_mount (trained on cameras '
+              f'{wide_low:.1f}-{wide_high:.1f} m up)' if wide_low <= height <= wide_high else
+              f'weights fine-tuned for it (fhld salad-train OUT --init <these weights> '
+              f'--camera-height {height - 0.2:.1f} {height + 0.2:.1f})')
+    return (f'camera_to_output puts the camera {height:.2f} m above the road, and these SALAD '
+            f'weights were trained on cameras {low:.1f}-{high:.1f} m up: their lanes will lie '
+            f'as if it were within that range; use {advice}')
 
 
 def check_camera_info(msg: Any) -> CameraIntrinsics:
@@ -191,6 +221,7 @@ class CameraPipeline:
         self.road = (RoadPlane.from_extrinsic(self.T_output_camera, params.road_plane_m)
                      if params.road_plane_m > 0 else None)
         self.mount_plane = None if self.road is None else mount_plane(self.road)
+        self.mount_warning = mount_warning(getattr(detector, 'info', {}), self.road)
         self.camera: CameraIntrinsics | None = None
         self.camera_problem = 'no camera_info received yet'
         self.pending: CameraImage | None = None

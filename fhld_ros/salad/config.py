@@ -10,6 +10,10 @@ from fhld_ros.errors import ConfigError
 from fhld_ros.salad.virtual_camera import VirtualCamera
 
 STRIDE = 4  # output cells per input pixel, each way (the paper's H/4 x W/4 maps)
+# the training drives' cameras, optical centre above the road (m): by default, and those of
+# the shipped salad_wide_mount.pt (the network's depth follows the heights it was trained on)
+HEIGHT_RANGE_M = (1.2, 2.0)
+WIDE_MOUNT_HEIGHTS_M = (1.2, 3.0)
 
 
 @dataclass(frozen=True)

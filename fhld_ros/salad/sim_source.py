@@ -19,6 +19,7 @@ import numpy as np
 
 from fhld_ros.data.cache import scenario_for_seed
 from fhld_ros.errors import ConfigError
+from fhld_ros.salad.config import HEIGHT_RANGE_M
 from fhld_ros.salad.road_plane import RoadPlane
 from fhld_ros.salad.sample import CameraLaneSample
 from fhld_ros.sim.camera import (
@@ -42,7 +43,6 @@ SPLITS = {'train': SALAD_TRAIN_SEED_BASE, 'test': SALAD_TEST_SEED_BASE,
 DEFAULT_SIZE = (960, 540)  # width, height (px)
 FRAME_STRIDE = 10  # sweeps between a drive's frames (1 s at 10 Hz)
 # the camera drawn per seed (randomise=True)
-HEIGHT_RANGE_M = (1.2, 2.0)  # optical centre above the road
 PITCH_RANGE_DEG = (-1.0, 5.0)  # optical axis below the horizontal (+: looking down)
 HFOV_RANGE_DEG = (50.0, 90.0)
 PRINCIPAL_JITTER = 0.03  # principal point off the image centre, up to this share of the size
