@@ -15,7 +15,7 @@ from fhld_ros.camera.calibration import CameraCalibration
 from fhld_ros.camera.labels2d import read_label_dir, read_labels, write_labels
 from fhld_ros.cli import main
 from fhld_ros.geometry import resample_polyline
-from fhld_ros.sim.camera import SimCamera, mount_extrinsic, sweep_stamp_ns
+from fhld_ros.sim.camera import RENDER_RANGE_M, SimCamera, mount_extrinsic, sweep_stamp_ns
 from fhld_ros.sim.gt_lines import crop_to_disc
 from fhld_ros.sim.labels2d_gt import LABEL_STEP_M, sim_image_labels
 from fhld_ros.sim.markings import NONE as NO_PAINT
@@ -152,6 +152,60 @@ def test_obstacle_culling_matches_testing_every_pixel() -> None:
     full, _ = camera.cast_obstacles(20, pose[:3, 3], dirs, cull=False)
     assert np.isfinite(full.t).sum() > 5000
     assert np.array_equal(culled.t, full.t)
+
+
+@pytest.mark.parametrize('hfov_deg, roll_deg, pitch_deg', [(70.0, 0.0, 3.0), (90.0, 12.0, -1.0),
+                                                            (50.0, -8.0, 8.0)])
+def test_ground_tiles_built_cover_every_ray(hfov_deg: float, roll_deg: float,
+                                           pitch_deg: float) -> None:
+    # the camera builds only the ground tiles under the sector it sees; each ray's points out
+    # to the render range, and the cells beside them, must lie in built tiles, whichever way
+    # the camera looks (the sector's edges cross tile corners at some headings)
+    sim = Simulator(3, sweeps=1)
+    roll = np.deg2rad(roll_deg)
+    about_axis = np.eye(4)
+    about_axis[:2, :2] = [[np.cos(roll), -np.sin(roll)], [np.sin(roll), np.cos(roll)]]
+    camera = SimCamera(sim, 160, 100, hfov_deg,
+                       T_cloud_camera=mount_extrinsic(pitch_deg=pitch_deg) @ about_axis)
+    reach = RENDER_RANGE_M + 5.0
+    t = np.arange(0.0, RENDER_RANGE_M + 1.0, 1.0)
+    for yaw in np.deg2rad(np.arange(0.0, 360.0, 10.0)):
+        heading = np.eye(4)
+        heading[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+        pose = heading @ camera.pose(0)
+        origin, dirs = pose[:3, 3], camera.world_dirs(pose)
+        seen = camera._seen_tiles(origin, dirs, reach)
+        corners = np.floor((origin[:2] + [[-reach], [reach]]) / camera.grid.tile_m)
+        assert seen and len(seen) < 0.6 * np.prod(corners[1] - corners[0] + 1)  # of the square
+        # the image's edges (where the sector's are) and every 8th ray inside
+        rays = np.concatenate([dirs[[0, -1]].reshape(-1, 3), dirs[:, [0, -1]].reshape(-1, 3),
+                               dirs[::8, ::8].reshape(-1, 3)])
+        points = origin[:2] + t[:, None, None] * rays[None, :, :2]
+        assert camera.grid.tiles_near(points, 2 * camera.grid.RES) <= seen, np.rad2deg(yaw)
+
+
+def test_ground_block_builds_a_tile_left_out_once_a_ray_needs_it() -> None:
+    sim = Simulator(3, sweeps=1)
+    grid = SimCamera(sim, 160, 100).grid
+    xy, reach = np.array([10.0, 3.0]), 100.0
+    ahead = grid.tiles_near(xy[None] + [[60.0, 0.0]], 1.0)
+    behind = grid.tiles_near(xy[None] - [[60.0, 0.0]], 1.0)
+
+    def heights(tiles: set) -> np.ndarray:  # at 8 x 8 points over each tile
+        inside = (np.arange(8) + 0.5) * grid.tile_m / 8
+        x, y = (np.concatenate([(key + inside[:, None]) for key in np.array(list(tiles))[:, k]
+                                * grid.tile_m]) for k in (0, 1))
+        return grid.nearest_h(*np.meshgrid(x, y))
+
+    grid.ensure(xy, reach, ahead)
+    assert np.isfinite(heights(ahead)).all() and np.isneginf(heights(behind)).all()
+    z_ahead = grid.z_range
+    grid.ensure(xy, reach, ahead)  # the same block serves
+    grid.ensure(xy, reach, behind)  # a tile left out is built
+    assert np.isfinite(heights(ahead | behind)).all()
+    grid.ensure(xy, reach)  # everything: the LiDAR's block
+    assert np.isfinite(grid.h).all()
+    assert grid.z_range[0] <= z_ahead[0] and grid.z_range[1] >= z_ahead[1]
 
 
 def test_labels_round_trip_through_json(truck_scene, tmp_path: Path) -> None:

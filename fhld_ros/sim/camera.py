@@ -40,6 +40,7 @@ PITCH_DEG = 3.0  # optical axis below the LiDAR's horizontal
 RENDER_RANGE_M = 150.0  # ground and obstacles beyond fade into the haze
 HAZE_M = 400.0  # distance of 1/e haze transmission
 PAINT_AA_M = 25.0  # beyond this range paint is averaged over the pixel's footprint
+SECTOR_STEP_M = 4.0  # spacing of the samples that find the ground tiles the camera sees
 
 SUN = np.array([0.45, -0.35, 0.82]) / np.linalg.norm([0.45, -0.35, 0.82])  # world, unit
 AMBIENT, SUN_GAIN = 0.55, 0.65
@@ -214,13 +215,32 @@ class SimCamera:
 
     def _cast_ground(self, origin: np.ndarray, dirs: np.ndarray, blocked: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        self.grid.ensure(origin[:2], RENDER_RANGE_M + 5.0)
+        reach = RENDER_RANGE_M + 5.0
+        self.grid.ensure(origin[:2], reach, self._seen_tiles(origin, dirs, reach))
         flat = dirs.reshape(-1, 3)
         t, s, d = cast_ground(self.grid, self.sim.scene.surface,
                               np.broadcast_to(origin, flat.shape), flat,
                               np.minimum(blocked, RENDER_RANGE_M).ravel())
         shape = dirs.shape[:2]
         return t.reshape(shape), s.reshape(shape), d.reshape(shape)
+
+    def _seen_tiles(self, origin: np.ndarray, dirs: np.ndarray, reach: float
+                    ) -> set[tuple[int, int]] | None:
+        """The ground tiles under the sector the rays span from above, out to reach (None: the
+        whole square, for rays close to vertical). Sampled every SECTOR_STEP_M, each sample
+        widened by its spacing and a cell for the bilinear heights."""
+        rays = np.concatenate([dirs[::4, ::4].reshape(-1, 3), dirs[-1], dirs[:, -1]])
+        horizontal = np.hypot(rays[:, 0], rays[:, 1])
+        if horizontal.min() < 0.2:
+            return None
+        centre = dirs[self.height // 2, self.width // 2]
+        yaw = float(np.arctan2(centre[1], centre[0]))
+        az = (np.arctan2(rays[:, 1], rays[:, 0]) - yaw + np.pi) % (2 * np.pi) - np.pi
+        radii = np.arange(0.0, reach + SECTOR_STEP_M, SECTOR_STEP_M)
+        n_az = int(np.ceil((az.max() - az.min()) * reach / SECTOR_STEP_M)) + 1
+        angles = yaw + np.linspace(az.min(), az.max(), n_az)
+        xy = origin[:2] + radii[:, None, None] * np.stack([np.cos(angles), np.sin(angles)], -1)
+        return self.grid.tiles_near(xy, SECTOR_STEP_M + 2 * self.grid.RES)
 
     # -- shading (linear RGB, lit) ------------------------------------------------------
     def _shade_ground(self, s: np.ndarray, d: np.ndarray, z: np.ndarray, t: np.ndarray,

@@ -104,7 +104,7 @@ def cast_ground(grid: GroundGrid, surface: Surface, origin: np.ndarray, dirs: np
     t_out = np.full(n, np.inf)
     s_out = np.zeros(n)
     d_out = np.zeros(n)
-    z_lo, z_hi = float(grid.h.min()) - 0.5, float(grid.h.max()) + 0.5
+    z_lo, z_hi = grid.z_range[0] - 0.5, grid.z_range[1] + 0.5
     dz = dirs[:, 2]
     oz = origin[:, 2]
     with np.errstate(divide='ignore', invalid='ignore'):

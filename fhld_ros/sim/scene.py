@@ -252,6 +252,8 @@ class GroundGrid:
         self.origin = np.zeros(2)
         self.h = self.s = self.d = np.zeros((0, 0), dtype=np.float32)
         self.padded_h = np.full((2, 2), -np.inf, dtype=np.float32)
+        self.z_range = (0.0, 0.0)  # lowest and highest height of the block's built tiles
+        self._skipped: set[tuple[int, int]] = set()  # the block's tiles left unbuilt
 
     def _tile(self, tx: int, ty: int) -> np.ndarray:
         tile = self._tiles.get((tx, ty))
@@ -266,24 +268,52 @@ class GroundGrid:
             self._tiles[(tx, ty)] = tile
         return tile
 
-    def ensure(self, xy: np.ndarray, radius: float) -> None:
-        """Make the block cover the square of half-size radius around xy."""
+    def ensure(self, xy: np.ndarray, radius: float,
+               needed: set[tuple[int, int]] | None = None) -> None:
+        """Make the block cover the square of half-size radius around xy. needed: build only
+        these tiles of it (tiles_near) and those cached, the others hold -inf heights that no
+        ray finds: a camera sees a sector of the square, and building a tile is most of a
+        render."""
         lo = np.floor((np.asarray(xy) - radius) / self.tile_m).astype(int)
         hi = np.floor((np.asarray(xy) + radius) / self.tile_m).astype(int)
         key = (int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1]))
         if self._block_key is not None:
             k = self._block_key
-            if k[0] <= key[0] and k[1] <= key[1] and k[2] >= key[2] and k[3] >= key[3]:
+            if k[0] <= key[0] and k[1] <= key[1] and k[2] >= key[2] and k[3] >= key[3] and \
+                    (not self._skipped or (needed is not None and not needed & self._skipped)):
                 return
-        rows = [np.concatenate([self._tile(tx, ty) for tx in range(lo[0], hi[0] + 1)], axis=2)
+        square = {(tx, ty) for tx in range(lo[0], hi[0] + 1) for ty in range(lo[1], hi[1] + 1)}
+        skipped = set() if needed is None else square - needed - self._tiles.keys()
+        rows = [np.concatenate([self._unbuilt() if (tx, ty) in skipped else self._tile(tx, ty)
+                                for tx in range(lo[0], hi[0] + 1)], axis=2)
                 for ty in range(lo[1], hi[1] + 1)]
         block = np.concatenate(rows, axis=1)
         self.h, self.s, self.d = block[0], block[1], block[2]
         self.sd = np.ascontiguousarray(block[1:].reshape(2, -1).T.astype(np.float64))
         # one ring of -inf cells around: marching rays clipped onto it never find ground
         self.padded_h = np.pad(self.h, 1, constant_values=-np.inf)
+        built = self.h[np.isfinite(self.h)]
+        self.z_range = (float(built.min()), float(built.max())) if built.size else (0.0, 0.0)
         self.origin = lo * self.tile_m
-        self._block_key = (int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1]))
+        self._block_key = key
+        self._skipped = skipped
+
+    def _unbuilt(self) -> np.ndarray:
+        """A tile left out of the block: no ground (-inf), road coordinates 0."""
+        tile = np.zeros((3, self.TILE_CELLS, self.TILE_CELLS), dtype=np.float32)
+        tile[0] = -np.inf
+        return tile
+
+    def tiles_near(self, xy: np.ndarray, margin: float) -> set[tuple[int, int]]:
+        """The tiles within margin (< a tile) of any of the points xy (N, 2)."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        corners = np.concatenate([xy + (sx * margin, sy * margin)
+                                  for sx in (-1, 1) for sy in (-1, 1)])
+        ix, iy = np.floor(corners / self.tile_m).astype(np.int64).T
+        lo_x, lo_y = int(ix.min()), int(iy.min())
+        span = int(iy.max()) - lo_y + 1
+        keys = np.unique((ix - lo_x) * span + (iy - lo_y))  # one integer per tile: a fast sort
+        return {(lo_x + int(k) // span, lo_y + int(k) % span) for k in keys}
 
     def nearest_h(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Height of the cell containing each point (points outside: -inf, never ground)."""
