@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fhld_ros.camera.calibration import CameraCalibration
+from fhld_ros.sim.ground_grid import GroundGrid
 from fhld_ros.sim.markings import LINE
 from fhld_ros.sim.markings import NONE as NO_PAINT
 from fhld_ros.sim.obstacles import (
@@ -26,9 +27,9 @@ from fhld_ros.sim.obstacles import (
     VEHICLE,
     Spheres,
 )
-from fhld_ros.sim.pinhole_caster import PinholeCaster
+from fhld_ros.sim.pinhole_caster import PinholeCaster, screen_normals
 from fhld_ros.sim.raycast import ObstacleCaster, RayBundle, cast_ground
-from fhld_ros.sim.scene import ASPHALT, CONCRETE, GRASS, GRAVEL, GroundGrid
+from fhld_ros.sim.scene import ASPHALT, CONCRETE, GRASS, GRAVEL
 from fhld_ros.sim.simulator import PERIOD_S, STAMP_BASE_NS, Simulator, subset
 
 CAMERA_FRAME = 'camera'
@@ -40,7 +41,6 @@ PITCH_DEG = 3.0  # optical axis below the LiDAR's horizontal
 RENDER_RANGE_M = 150.0  # ground and obstacles beyond fade into the haze
 HAZE_M = 400.0  # distance of 1/e haze transmission
 PAINT_AA_M = 25.0  # beyond this range paint is averaged over the pixel's footprint
-SECTOR_STEP_M = 4.0  # spacing of the samples that find the ground tiles the camera sees
 
 SUN = np.array([0.45, -0.35, 0.82]) / np.linalg.norm([0.45, -0.35, 0.82])  # world, unit
 AMBIENT, SUN_GAIN = 0.55, 0.65
@@ -226,21 +226,15 @@ class SimCamera:
 
     def _seen_tiles(self, origin: np.ndarray, dirs: np.ndarray, reach: float
                     ) -> set[tuple[int, int]] | None:
-        """The ground tiles under the sector the rays span from above, out to reach (None: the
-        whole square, for rays close to vertical). Sampled every SECTOR_STEP_M, each sample
-        widened by its spacing and a cell for the bilinear heights."""
+        """The ground tiles under the sector of azimuths the rays span (None: the whole
+        square, for rays close to vertical, whose azimuth says little)."""
         rays = np.concatenate([dirs[::4, ::4].reshape(-1, 3), dirs[-1], dirs[:, -1]])
-        horizontal = np.hypot(rays[:, 0], rays[:, 1])
-        if horizontal.min() < 0.2:
+        if np.hypot(rays[:, 0], rays[:, 1]).min() < 0.2:
             return None
         centre = dirs[self.height // 2, self.width // 2]
         yaw = float(np.arctan2(centre[1], centre[0]))
         az = (np.arctan2(rays[:, 1], rays[:, 0]) - yaw + np.pi) % (2 * np.pi) - np.pi
-        radii = np.arange(0.0, reach + SECTOR_STEP_M, SECTOR_STEP_M)
-        n_az = int(np.ceil((az.max() - az.min()) * reach / SECTOR_STEP_M)) + 1
-        angles = yaw + np.linspace(az.min(), az.max(), n_az)
-        xy = origin[:2] + radii[:, None, None] * np.stack([np.cos(angles), np.sin(angles)], -1)
-        return self.grid.tiles_near(xy, SECTOR_STEP_M + 2 * self.grid.RES)
+        return self.grid.tiles_in_sector(origin, (yaw + az.min(), yaw + az.max()), reach)
 
     # -- shading (linear RGB, lit) ------------------------------------------------------
     def _shade_ground(self, s: np.ndarray, d: np.ndarray, z: np.ndarray, t: np.ndarray,
@@ -328,7 +322,7 @@ class SimCamera:
             bay = np.mod(p[:, 0] + p[:, 1], 2.6) / 2.6
             window = (storey > 0.35) & (storey < 0.8) & (bay > 0.2) & (bay < 0.7)
             albedo[house] = np.where(window[:, None], WINDOW, facade)
-        normal = _screen_normals(origin, dirs, t, obj)
+        normal = screen_normals(origin, dirs, t, obj)
         sun = np.maximum(normal @ SUN, 0.0)
         view = 0.55 + 0.45 * caster.cos.ravel()[oi]
         return albedo * (AMBIENT * view + SUN_GAIN * sun)[:, None]
@@ -376,39 +370,6 @@ def _fill_curb_gaps(ground: np.ndarray, obj: np.ndarray, dirs: np.ndarray,
     for field in fields:
         field[r, c] = field[src, c]
     ground[r, c] = True
-
-
-def _screen_normals(origin: np.ndarray, dirs: np.ndarray, t: np.ndarray, mask: np.ndarray
-                    ) -> np.ndarray:
-    """World normals (N, 3) at the mask's pixels from the hit points' differences to the
-    neighbouring pixels, taking on each axis the neighbour at the nearer range (so an edge keeps
-    its own surface), turned to face the camera."""
-    h, w = t.shape
-    idx = np.flatnonzero(mask)
-    row, col = np.divmod(idx, w)
-    flat_t = t.astype(np.float32).ravel()
-    comps = [dirs[..., i].astype(np.float32).ravel() for i in range(3)]
-    t0 = flat_t[idx]
-
-    def tangent(step: int, has_prev: np.ndarray, has_next: np.ndarray) -> list[np.ndarray]:
-        prev, nxt = np.where(has_prev, idx - step, idx), np.where(has_next, idx + step, idx)
-        with np.errstate(invalid='ignore'):  # inf - inf beside the sky: never chosen
-            gap_p = np.where(has_prev, np.abs(t0 - flat_t[prev]), np.inf)
-            gap_n = np.where(has_next, np.abs(flat_t[nxt] - t0), np.inf)
-        back = gap_p < gap_n
-        j = np.where(back, prev, nxt)
-        tj = np.where(np.isfinite(flat_t[j]), flat_t[j], t0)
-        sign = np.where(back, np.float32(-1), np.float32(1))
-        # (p_j - p_0) without the common origin
-        return [sign * (tj * c[j] - t0 * c[idx]) for c in comps]
-
-    ax, ay, az = tangent(1, col > 0, col < w - 1)
-    bx, by, bz = tangent(w, row > 0, row < h - 1)
-    n = np.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], axis=1)
-    d = np.stack([c[idx] for c in comps], axis=1)
-    norm = np.sqrt((n * n).sum(axis=1, keepdims=True))
-    n = np.where(norm > 0, n / np.maximum(norm, 1e-12), -d)
-    return np.where(((n * d).sum(axis=1) > 0)[:, None], -n, n)
 
 
 _GAMMA = np.round(255.0 * np.linspace(0.0, 1.0, 4096) ** (1 / 2.2)).astype(np.uint8)

@@ -1,7 +1,8 @@
 """The obstacle caster for a pinhole image (sim/camera.py): the LiDAR's caster picks, for each
 object, the block of beams and evenly spaced columns of a spinning sensor it can cover; an
 image's rows and columns are not evenly spaced in angle, so the blocks come from each pixel
-row's elevation range and each pixel column's azimuth range instead."""
+row's elevation range and each pixel column's azimuth range instead; and the normals of the
+hits, from their neighbouring pixels (screen_normals)."""
 from __future__ import annotations
 
 import numpy as np
@@ -80,3 +81,36 @@ class PinholeCaster(ObstacleCaster):
         return self._spans(mid, np.where(around, np.pi, 0.5 * span),
                            np.where(around, -np.pi / 2, el_lo), np.where(around, np.pi / 2, el_hi),
                            d_min > self.rays.t_max)
+
+
+def screen_normals(origin: np.ndarray, dirs: np.ndarray, t: np.ndarray, mask: np.ndarray
+                    ) -> np.ndarray:
+    """World normals (N, 3) at the mask's pixels from the hit points' differences to the
+    neighbouring pixels, taking on each axis the neighbour at the nearer range (so an edge keeps
+    its own surface), turned to face the camera."""
+    h, w = t.shape
+    idx = np.flatnonzero(mask)
+    row, col = np.divmod(idx, w)
+    flat_t = t.astype(np.float32).ravel()
+    comps = [dirs[..., i].astype(np.float32).ravel() for i in range(3)]
+    t0 = flat_t[idx]
+
+    def tangent(step: int, has_prev: np.ndarray, has_next: np.ndarray) -> list[np.ndarray]:
+        prev, nxt = np.where(has_prev, idx - step, idx), np.where(has_next, idx + step, idx)
+        with np.errstate(invalid='ignore'):  # inf - inf beside the sky: never chosen
+            gap_p = np.where(has_prev, np.abs(t0 - flat_t[prev]), np.inf)
+            gap_n = np.where(has_next, np.abs(flat_t[nxt] - t0), np.inf)
+        back = gap_p < gap_n
+        j = np.where(back, prev, nxt)
+        tj = np.where(np.isfinite(flat_t[j]), flat_t[j], t0)
+        sign = np.where(back, np.float32(-1), np.float32(1))
+        # (p_j - p_0) without the common origin
+        return [sign * (tj * c[j] - t0 * c[idx]) for c in comps]
+
+    ax, ay, az = tangent(1, col > 0, col < w - 1)
+    bx, by, bz = tangent(w, row > 0, row < h - 1)
+    n = np.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], axis=1)
+    d = np.stack([c[idx] for c in comps], axis=1)
+    norm = np.sqrt((n * n).sum(axis=1, keepdims=True))
+    n = np.where(norm > 0, n / np.maximum(norm, 1e-12), -d)
+    return np.where(((n * d).sum(axis=1) > 0)[:, None], -n, n)

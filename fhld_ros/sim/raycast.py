@@ -12,8 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fhld_ros.sim.ground_grid import GroundGrid
 from fhld_ros.sim.obstacles import Boxes, Cylinders, Spheres
-from fhld_ros.sim.scene import GroundGrid, Surface
+from fhld_ros.sim.scene import Surface
 
 T_MIN = 0.3  # m: nothing is hit closer than this (sensor housing)
 

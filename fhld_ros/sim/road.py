@@ -92,14 +92,24 @@ class ReferenceLine:
             z = row[..., 4] + row[..., 6] * d
         return np.stack(np.broadcast_arrays(x, y, z), axis=-1)
 
-    def project(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """World xy (..., 2) -> road coordinates (s, d) of the nearest reference-line point."""
+    def project(self, xy: np.ndarray, within: tuple[np.ndarray, float] | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """World xy (..., 2) -> road coordinates (s, d) of the nearest reference-line point.
+        within (centre, radius): every point lies within radius of centre (a tile of the
+        ground grid), so only the samples that can be nearest to one of them are searched."""
         xy = np.asarray(xy, dtype=np.float64)
         flat = xy.reshape(-1, 2)
         if self._tree is None:  # samples every 1 m; two Newton steps refine to sub-micron
             self._stride = max(1, round(1.0 / DS))
             self._tree = cKDTree(self.table[::self._stride, :2])
-        _, k = self._tree.query(flat)  # single-threaded: cache builders run many processes
+        if within is None:
+            _, k = self._tree.query(flat)  # single-threaded: cache builders run many processes
+        else:  # a point's nearest sample is within 2 radius + the centre's nearest of centre
+            centre, radius = within
+            reach, _ = self._tree.query(centre)
+            samples = self._tree.data
+            near = np.flatnonzero(np.hypot(*(samples - centre).T) <= reach + 2.0 * radius)
+            k = near[cKDTree(samples[near]).query(flat)[1]]
         s = self.s0 + k * (self._stride * DS)
         for _ in range(2):
             row = self.sample(s)

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from fhld_ros.sim import ego as ego_mod
+from fhld_ros.sim.ground_grid import GroundGrid
 from fhld_ros.sim.gt_lines import crop_to_disc
 from fhld_ros.sim.layout import ROAD_CLASSES, TOPOLOGIES, Layout, TopologyEvent
 from fhld_ros.sim.layout_builder import make_layout
@@ -50,7 +51,7 @@ from fhld_ros.sim.obstacles import (
 )
 from fhld_ros.sim.raycast import ObstacleCaster, RayBundle, cast_ground
 from fhld_ros.sim.road import ReferenceLine, RoadShape, make_reference_line
-from fhld_ros.sim.scene import PAINT, GroundGrid, RoadLook, Surface
+from fhld_ros.sim.scene import PAINT, RoadLook, Surface
 
 SPEED_RANGE = {'highway': (18.0, 30.0), 'urban': (5.0, 14.0), 'rural': (12.0, 25.0)}
 PERIOD_S = 0.1  # 10 Hz sweeps
