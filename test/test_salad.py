@@ -11,12 +11,11 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
-import fhld_ros.salad.decode as salad_decode
 from fhld_ros.errors import ConfigError
 from fhld_ros.salad.augment import SaladAugment, augment_images, draw, flip
 from fhld_ros.salad.checkpoint import SaladCheckpointError, load_salad, save_salad
 from fhld_ros.salad.config import STRIDE, SaladConfig
-from fhld_ros.salad.decode import FIT_UNTIL_M, decode, extend_to_row_edge
+from fhld_ros.salad.decode import decode, extend_to_row_edge
 from fhld_ros.salad.detector import SaladDetector
 from fhld_ros.salad.evaluate import score
 from fhld_ros.salad.losses import SaladCriterion
@@ -151,34 +150,6 @@ def test_a_far_side_line_that_runs_along_the_image_rows_is_decoded():
     assert len(decoded) == 3 and len(side) == 1
     assert np.abs(side[0][:, 0] - 12.0).max() < 0.3
     assert side[0][0, 2] < 36.0 and side[0][-1, 2] > 55.0
-
-
-def test_far_points_of_scattered_depth_are_left_to_the_lanes_trend(monkeypatch):
-    # near the horizon a pixel row is ~8 % of the depth and the network's depth scatters:
-    # without a road, the lanes' points beyond FIT_UNTIL_M are not fitted, their trend is
-    lanes = _road()
-    targets = lane_targets(lanes, CAMERA)
-    cfg = _config_for(targets.depth[None], targets.depth_mask[None])
-    rng = np.random.default_rng(3)
-    depth = targets.depth.copy()
-    far = depth > FIT_UNTIL_M
-    depth[far] *= rng.uniform(0.92, 1.08, far.sum())  # a pixel row at ~55 m
-    maps = targets.seg * 0.9, np.concatenate([targets.offsets, cfg.depth_residual(depth)[None]])
-    trees = [cKDTree(lane) for lane in lanes]
-
-    def far_error() -> float:
-        decoded, _ = decode(*maps, cfg)
-        assert len(decoded) == 4
-        points = np.concatenate([lane[lane[:, 2] > 50.0] for lane in decoded])
-        return float(np.median([min(t.query(p)[0] for t in trees) for p in points]))
-
-    assert far_error() < 0.03  # as with exact depth
-    # a lane seen only far away keeps its points
-    only_far = np.column_stack([np.full(8, 9.0), np.zeros(8), np.linspace(50, 60, 8),
-                                np.ones(8), np.zeros(8), np.zeros(8)])
-    assert salad_decode.near_part(only_far) is only_far
-    monkeypatch.setattr(salad_decode, 'FIT_UNTIL_M', np.inf)  # every point fitted
-    assert far_error() > 0.05
 
 
 def test_a_lane_continues_to_the_far_edge_of_its_top_cell_row_and_no_further():

@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-import fhld_ros.salad.decode as salad_decode
 from fhld_ros.errors import ConfigError
 from fhld_ros.salad.config import SaladConfig
 from fhld_ros.salad.decode import decode
@@ -54,7 +53,7 @@ def test_the_output_frames_ground_is_the_plane_of_a_level_mount():
         RoadPlane.from_extrinsic(euler_to_matrix(0, 0, -1.0, -np.pi / 2, 0, -np.pi / 2))
 
 
-def test_near_lanes_take_the_roads_depth_and_far_ones_the_networks(monkeypatch):
+def test_near_lanes_take_the_roads_depth_and_far_ones_the_networks():
     lanes = _level_road()
     targets = lane_targets(lanes, CAMERA)
     shift, scale = row_statistics(targets.depth[None], targets.depth_mask[None])
@@ -69,8 +68,6 @@ def test_near_lanes_take_the_roads_depth_and_far_ones_the_networks(monkeypatch):
         points = points[(points[:, 2] < 18.0) if near else (points[:, 2] > 32.0)]
         return float(np.median([min(t.query(p)[0] for t in trees) for p in points]))
 
-    # both fit every point (without a road the far ones are otherwise left to the trend)
-    monkeypatch.setattr(salad_decode, 'FIT_UNTIL_M', np.inf)
     network, _ = decode(*maps, cfg)
     # the plane up to 20 m, blending into the network's depth by 30 m
     with_road, _ = decode(*maps, cfg, RoadPlane.level(HEIGHT, PITCH, until_m=20.0))
@@ -136,3 +133,11 @@ def test_a_drives_camera_moves_to_a_given_height_and_keeps_its_pitch_and_lens():
     from fhld_ros.cli import main
     for bad in (['-1'], ['2', '1'], ['1', '2', '3']):
         assert main(['salad-eval', '--drives', '1', '--camera-height', *bad]) == 2
+    assert main(['salad-eval', '--drives', '1', '--first-drive', '-1']) == 2
+
+
+def test_held_out_drives_start_where_asked():
+    # a second set of validation drives, to confirm a choice made on the first
+    from fhld_ros.salad.evaluate import held_out_drives
+    sample = next(held_out_drives(1, 1, 'val', first=60))
+    assert sample.name == f'sim seed {salad_seeds("val", 1, 60)[0]} sweep 0'

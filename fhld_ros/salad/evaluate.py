@@ -61,6 +61,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--drives', type=int, default=10,
                         help='held-out simulated drives (0: none)')
     parser.add_argument('--frames', type=int, default=5, help='images per drive, 1 s apart')
+    parser.add_argument('--first-drive', type=int, default=0,
+                        help="the split's drives from this one (e.g. a second validation set "
+                             'to confirm a choice made on the first)')
     parser.add_argument('--validation', action='store_true',
                         help="SALAD's validation seeds instead of its test seeds (for choosing "
                              'settings and checkpoints)')
@@ -132,8 +135,9 @@ def _by_range(errors: np.ndarray) -> dict[str, dict]:
 
 
 def held_out_drives(drives: int, frames: int, split: str = 'test',
-                    heights_m: tuple[float, float] | None = None) -> Iterator[CameraLaneSample]:
-    for seed in salad_seeds(split, drives):
+                    heights_m: tuple[float, float] | None = None, first: int = 0
+                    ) -> Iterator[CameraLaneSample]:
+    for seed in salad_seeds(split, drives, first):
         yield from simulated_samples(seed, frames, heights_m=heights_m)
 
 
@@ -150,8 +154,9 @@ def _print(name: str, rows: dict[str, dict]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.drives < 0 or args.frames < 1 or args.road_plane < 0:
-        raise ConfigError('--drives and --road-plane must be >= 0 and --frames >= 1')
+    if args.drives < 0 or args.first_drive < 0 or args.frames < 1 or args.road_plane < 0:
+        raise ConfigError('--drives, --first-drive and --road-plane must be >= 0 and --frames '
+                          '>= 1')
     heights = camera_heights(args)
     detector = SaladDetector(args.checkpoint, flip_average=args.flip_average)
     perfect = PerfectMaps(detector, args.perfect) if args.perfect else None
@@ -159,7 +164,7 @@ def run(args: argparse.Namespace) -> int:
     if args.drives:
         split = 'val' if args.validation else 'test'
         sources['validation' if args.validation else 'simulated'] = held_out_drives(
-            args.drives, args.frames, split, heights)
+            args.drives, args.frames, split, heights, args.first_drive)
     if args.once:
         sources['once'] = read_once(args.once, args.once_split)
     if args.openlane:
