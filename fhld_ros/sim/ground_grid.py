@@ -48,8 +48,8 @@ class GroundGrid:
     def ensure(self, xy: np.ndarray, radius: float,
                needed: set[tuple[int, int]] | None = None) -> None:
         """Make the block cover the square of half-size radius around xy. needed: build only
-        these tiles of it (tiles_near) and those cached, the others hold -inf heights that no
-        ray finds: a camera sees a sector of the square, and building a tile is most of a
+        these tiles of it (tiles_in_sector) and those cached, the others hold -inf heights that
+        no ray finds: a camera sees a sector of the square, and building a tile is most of a
         render."""
         lo = np.floor((np.asarray(xy) - radius) / self.tile_m).astype(int)
         hi = np.floor((np.asarray(xy) + radius) / self.tile_m).astype(int)
@@ -61,7 +61,9 @@ class GroundGrid:
                 return
         square = {(tx, ty) for tx in range(lo[0], hi[0] + 1) for ty in range(lo[1], hi[1] + 1)}
         skipped = set() if needed is None else square - needed - self._tiles.keys()
-        rows = [np.concatenate([self._unbuilt() if (tx, ty) in skipped else self._tile(tx, ty)
+        unbuilt = np.zeros((3, self.TILE_CELLS, self.TILE_CELLS), dtype=np.float32)
+        unbuilt[0] = -np.inf  # no ground; road coordinates 0 (concatenate copies it)
+        rows = [np.concatenate([unbuilt if (tx, ty) in skipped else self._tile(tx, ty)
                                 for tx in range(lo[0], hi[0] + 1)], axis=2)
                 for ty in range(lo[1], hi[1] + 1)]
         block = np.concatenate(rows, axis=1)
@@ -74,12 +76,6 @@ class GroundGrid:
         self.origin = lo * self.tile_m
         self._block_key = key
         self._skipped = skipped
-
-    def _unbuilt(self) -> np.ndarray:
-        """A tile left out of the block: no ground (-inf), road coordinates 0."""
-        tile = np.zeros((3, self.TILE_CELLS, self.TILE_CELLS), dtype=np.float32)
-        tile[0] = -np.inf
-        return tile
 
     def tiles_near(self, xy: np.ndarray, margin: float) -> set[tuple[int, int]]:
         """The tiles within margin (< a tile) of any of the points xy (N, 2)."""
