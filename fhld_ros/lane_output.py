@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.spatial.distance import cdist
 
 from msg_adapters.lanes import lane_to_path_cdr, lanes_to_marker_array_cdr
 
@@ -46,7 +47,7 @@ class LaneIdTracker:
     def assign(self, lanes: list[np.ndarray]) -> np.ndarray:
         ids = np.full(len(lanes), -1, dtype=np.int64)
         if lanes and self.previous:
-            cost = np.array([[_mean_distance(a, b) for b in self.previous] for a in lanes])
+            cost = mean_distances(lanes, self.previous)
             # inf (no overlap) would make the assignment infeasible; such pairs fail the test
             rows, cols = linear_sum_assignment(np.minimum(cost, 1e6))
             good = cost[rows, cols] <= self.max_distance
@@ -58,11 +59,28 @@ class LaneIdTracker:
         return ids
 
 
-def _mean_distance(a: np.ndarray, b: np.ndarray) -> float:
-    """Mean top-view distance from a's points to b's points, over a's overlap with b."""
-    d = np.sqrt(((a[:, None, :2] - b[None, :, :2]) ** 2).sum(-1)).min(axis=1)
-    overlap = d < 2.0
-    return float(d[overlap].mean()) if overlap.sum() >= 2 else np.inf
+def mean_distances(lanes: list[np.ndarray], others: list[np.ndarray],
+                   overlap_m: float = 2.0) -> np.ndarray:
+    """(len(lanes), len(others)): the mean top-view distance from a lane's points to the other
+    lane, over the points within overlap_m of it; inf where fewer than two are. One distance
+    matrix between all points, reduced per pair of lanes: a pair at a time cost the camera
+    node ~17 ms a cycle (7 lanes of 120 points against 7)."""
+    cost = np.full((len(lanes), len(others)), np.inf)
+    rows = [i for i, lane in enumerate(lanes) if len(lane)]
+    cols = [j for j, lane in enumerate(others) if len(lane)]
+    if not rows or not cols:
+        return cost
+    a = np.concatenate([lanes[i][:, :2] for i in rows])
+    b = np.concatenate([others[j][:, :2] for j in cols])
+    starts_a = np.cumsum([0] + [len(lanes[i]) for i in rows[:-1]])
+    starts_b = np.cumsum([0] + [len(others[j]) for j in cols[:-1]])
+    nearest = np.minimum.reduceat(cdist(a, b), starts_b, axis=1)  # (points, others)
+    near = nearest < overlap_m
+    total = np.add.reduceat(np.where(near, nearest, 0.0), starts_a, axis=0)
+    count = np.add.reduceat(near, starts_a, axis=0)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        cost[np.ix_(rows, cols)] = np.where(count >= 2, total / count, np.inf)
+    return cost
 
 
 def ego_lane_bounds(lanes_window: list[np.ndarray],

@@ -342,8 +342,8 @@ def test_bench_camera_reports_each_stage(monkeypatch):
     threads = torch.get_num_threads()
     result = bench_camera.bench_camera()
     assert torch.get_num_threads() == threads
-    for key in ('camera_warp_ms', 'camera_model_ms', 'camera_decode_ms', 'camera_e2e_ms_p50',
-                'camera_e2e_ms_p95'):
+    for key in ('camera_warp_ms', 'camera_model_ms', 'camera_decode_ms',
+                'camera_decode_network_ms', 'camera_e2e_ms_p50', 'camera_e2e_ms_p95'):
         assert result[key] > 0, key
     assert result['camera_decode_lanes'] >= 2 and result['camera_image'] == '960x540'
     assert result['camera_weights'] in ('shipped', 'untrained (salad.pt absent)')

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fhld_ros.lane_output import LaneIdTracker, ego_lane_bounds
+from fhld_ros.lane_output import LaneIdTracker, ego_lane_bounds, mean_distances
 from fhld_ros.parameters import DetectorParams
 from fhld_ros.pipeline import LanePipeline
 from fhld_ros.pose_buffer import PoseBuffer
@@ -72,6 +72,26 @@ def test_lane_ids_survive_small_motion_and_new_lanes_get_new_ids():
     # lanes that overlap nothing from before (an infeasible assignment) all get fresh ids
     far = tracker.assign([_line(1.8) + [100, 0, 0], _line(-1.7) + [100, 0, 0]])
     assert not set(far) & set(second)
+
+
+def test_mean_distances_of_every_pair_over_their_overlap():
+    ahead = np.stack([np.arange(0.0, 10.5, 0.5), np.zeros(21), np.zeros(21)], 1)
+    beside = ahead + [0, 0.3, 5.0]  # 0.3 m to the side; height is not counted
+    longer = np.stack([np.arange(-5.0, 30.0, 0.25), np.full(140, -1.0), np.zeros(140)], 1)
+    apart = ahead + [0, 3.0, 0]  # nothing within 2 m
+    half = ahead[:11] + [5.0, 0.0, 0.0]  # x 5-10 m: overlaps the second half of `ahead`
+    cost = mean_distances([ahead, longer, np.zeros((0, 3)), half], [beside, apart, ahead])
+    assert cost.shape == (4, 3)
+    assert np.allclose(cost[0], [0.3, np.inf, 0.0])
+    # longer's points between beside's samples and past its ends count while within 2 m
+    gap = np.linalg.norm(longer[:, None, :2] - beside[None, :, :2], axis=-1).min(1)
+    assert np.isclose(cost[1, 0], gap[gap < 2].mean()) and 1.3 < cost[1, 0] < 1.4
+    assert cost[1, 1] == np.inf
+    assert np.all(cost[2] == np.inf)  # an empty lane overlaps nothing
+    assert np.allclose(cost[3], [0.3, np.inf, 0.0])
+    # from ahead's points only those within 2 m of `half` count: its 11 on it, and 3.5-4.5 m
+    assert np.allclose(mean_distances([ahead], [half]), (0.5 + 1.0 + 1.5) / 14)
+    assert mean_distances([], [ahead]).shape == (0, 1)
 
 
 def test_ego_lane_bounds_pick_the_nearest_line_each_side():

@@ -7,7 +7,8 @@ FHLD_BENCH_CAMERA_FLIP_AVERAGE says (default 1, the node's default; 0: one pass)
 camera_warp_ms (resampling to the virtual camera), camera_model_ms (the network as served, on
 the image and its mirror with flip_average; camera_model_eager_ms: the same network in eager
 torch), camera_decode_ms (maps -> 3D lanes, on the maps of the image's own ground-truth lanes,
-so it costs what a real detection of them costs whatever the weights), and camera_e2e_ms_p50 /
+so it costs what a real detection of them costs whatever the weights; camera_decode_network_ms
+on the network's own maps, whose stray cells make more points), and camera_e2e_ms_p50 /
 _p95: image message in -> the three /lanes messages out through CameraPipeline (decode,
 checks, SALAD, frames, ids, outline, serialisation).
 
@@ -112,6 +113,7 @@ def _bench_camera(sample: CameraLaneSample) -> dict[str, float | str]:
         with torch.inference_mode():
             detector.model(x)
     model_ms = time_median(lambda: detector.network(x), repeats=REPEATS, warmup=3)
+    maps = detector.maps(image, k)
     eager_ms = time_median(eager, repeats=REPEATS, warmup=3)
     family = rosbags_family()
     pipeline = CameraPipeline(CameraParams(flip_average=FLIP_AVERAGE), detector)
@@ -134,6 +136,7 @@ def _bench_camera(sample: CameraLaneSample) -> dict[str, float | str]:
             'camera_warp_ms': warp_ms, 'camera_model_ms': model_ms,
             'camera_model_eager_ms': eager_ms,
             'camera_decode_ms': _decode_ms(sample, cfg),
+            'camera_decode_network_ms': time_median(lambda: decode(*maps, cfg), repeats=REPEATS),
             'camera_decode_lanes': float(len(sample.lanes)),
             'camera_e2e_ms_p50': float(p50), 'camera_e2e_ms_p95': float(p95),
             'camera_e2e_lanes': float(statistics.median(lanes))}

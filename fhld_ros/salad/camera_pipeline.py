@@ -55,8 +55,6 @@ PLANE_HEIGHT_M = (0.3, 10.0)
 PLANE_MAX_TILT_DEG = 15.0
 MOUNT_MARGIN_M = 0.1  # beyond the trained heights by more, the near depth is off (salad.md)
 REGION_PX_PER_UNIT = 1000.0  # the region the model sees, as a camera: pixels per tan(angle)
-# model_threads 0: one torch thread (two beside other work on 2 cores: up to 40x slower)
-AUTO_THREADS = 1
 
 
 class CameraLaneDetector(Protocol):
@@ -110,11 +108,11 @@ class ImageIntake:
 def load_camera_detector(checkpoint: str = '', threads: int = 0, runtime: str = 'auto',
                          flip_average: bool = True) -> SaladDetector:
     """SaladDetector of `checkpoint` ('' = the shipped weights) on `threads` CPU threads
-    (0 = AUTO_THREADS), `runtime` and `flip_average`; ConfigError naming the file when it is
-    missing or unusable."""
+    (0: auto, SaladDetector), `runtime` and `flip_average`; ConfigError naming the file when
+    it is missing or unusable."""
     try:
-        return SaladDetector(checkpoint or DEFAULT_SALAD_CHECKPOINT, threads or AUTO_THREADS,
-                             runtime, flip_average)
+        return SaladDetector(checkpoint or DEFAULT_SALAD_CHECKPOINT, threads, runtime,
+                             flip_average)
     except ConfigError as exc:
         if checkpoint:
             raise

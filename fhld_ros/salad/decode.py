@@ -17,7 +17,11 @@ topmost cell row, where the image still shows it (`extend_to_row_edge`).
 """
 from __future__ import annotations
 
+from bisect import bisect_right
+
 import numpy as np
+from numpy.polynomial import polynomial as P
+from numpy.polynomial.polyutils import mapdomain
 
 from fhld_ros.salad.config import STRIDE, SaladConfig
 from fhld_ros.salad.road_plane import RoadPlane
@@ -81,57 +85,79 @@ def lane_points(prob: np.ndarray, spatial: np.ndarray, cfg: SaladConfig,
 
 def group_points(points: np.ndarray) -> list[np.ndarray]:
     """Indices of the points of each lane (see the module doc). A loop over depth slices, each
-    with a few points: the cells themselves were reduced to points without Python loops."""
-    lanes: list[list[int]] = []
-    last_slice: list[float] = []
-    for depth_slice in np.unique(points[:, SLICE]):
-        here = np.flatnonzero(points[:, SLICE] == depth_slice)
-        alive = [i for i, s in enumerate(last_slice) if depth_slice - s <= GAP_SLICES]
-        used_points: set[int] = set()
-        used_lanes: set[int] = set()
-        if alive:
-            ends = np.array([_heading(points[lanes[i]]) for i in alive])  # (x, z, dx/dz)
+    with a few points: the cells themselves were reduced to points without Python loops. A
+    lane takes at most one point a slice, so its depth grows point by point, and its heading
+    (its end and lateral slope, `_Lane.head`) changes only when it takes one."""
+    if not len(points):
+        return []
+    order = np.argsort(points[:, SLICE], kind='stable')
+    runs = np.flatnonzero(np.diff(points[order, SLICE])) + 1
+    lanes: list[_Lane] = []
+    heads = np.zeros((len(points), 3))  # (x, z, dx/dz) of each lane's end
+    last_slice = np.zeros(len(points))
+    for here in np.split(order, runs):
+        depth_slice = points[here[0], SLICE]
+        alive = np.flatnonzero(depth_slice - last_slice[:len(lanes)] <= GAP_SLICES)
+        used = np.zeros(len(here), dtype=bool)
+        if len(alive):
+            ends = heads[alive]
             reach = link_reach(points[here, Z])
             ahead = ends[None, :, 0] + ends[None, :, 2] * (points[here, Z][:, None]
                                                           - ends[None, :, 1])
             cost = np.abs(points[here, X][:, None] - ahead)
-            for flat in np.argsort(cost, axis=None):  # greedy, nearest pairs first
+            pairs = np.argsort(cost, axis=None)  # greedy, nearest pairs first, within reach
+            pairs = pairs[cost.flat[pairs] <= reach[pairs // len(alive)]]
+            taken: set[int] = set()
+            for flat in pairs:
                 a, b = divmod(int(flat), len(alive))
-                if cost[a, b] > reach[a] or a in used_points or b in used_lanes:
+                if used[a] or b in taken:
                     continue
-                lanes[alive[b]].append(int(here[a]))
-                last_slice[alive[b]] = depth_slice
-                used_points.add(a)
-                used_lanes.add(b)
-        for a in range(len(here)):
-            if a not in used_points:
-                lanes.append([int(here[a])])
-                last_slice.append(depth_slice)
-    return [np.array(lane) for lane in lanes]
+                lane = alive[b]
+                heads[lane] = lanes[lane].add(int(here[a]), points[here[a]])
+                last_slice[lane] = depth_slice
+                used[a] = True
+                taken.add(b)
+        for a in np.flatnonzero(~used):
+            heads[len(lanes)] = (lane := _Lane()).add(int(here[a]), points[here[a]])
+            last_slice[len(lanes)] = depth_slice
+            lanes.append(lane)
+    return [np.array(lane.indices) for lane in lanes]
 
 
-def _heading(lane: np.ndarray) -> tuple[float, float, float]:
-    """A lane's last point (x, z) and its lateral slope dx/dz over the last HEADING_M."""
-    x, z = lane[-1, X], lane[-1, Z]
-    back = np.flatnonzero(lane[:, Z] <= z - HEADING_M)
-    if not len(back):
-        return x, z, 0.0
-    i = back[-1]
-    return x, z, (x - lane[i, X]) / (z - lane[i, Z])
+class _Lane:
+    """The points of one lane so far, near to far: indices, x and z."""
+
+    def __init__(self) -> None:
+        self.indices: list[int] = []
+        self.x: list[float] = []
+        self.z: list[float] = []
+
+    def add(self, index: int, point: np.ndarray) -> tuple[float, float, float]:
+        """Takes a point; returns the lane's new end (x, z) and its lateral slope dx/dz over
+        the last HEADING_M (0 over less)."""
+        x, z = float(point[X]), float(point[Z])
+        back = bisect_right(self.z, z - HEADING_M) - 1  # depth grows: the last point that far
+        self.indices.append(index)
+        self.x.append(x)
+        self.z.append(z)
+        if back < 0:
+            return x, z, 0.0
+        return x, z, (x - self.x[back]) / (z - self.z[back])
 
 
 def fit_lane(points: np.ndarray) -> np.ndarray | None:
     """x(z) and y(z) polynomials through a lane's points (probability-weighted), sampled
-    near to far; None for too few points or too short a lane."""
+    near to far; None for too few points or too short a lane. Both in one solve, over z mapped
+    to [-1, 1] (as Polynomial.fit does: the powers of metres stay well conditioned)."""
     z = points[:, Z]
     if len(points) < MIN_POINTS or np.ptp(z) < MIN_LENGTH_M:
         return None
     degree = min(MAX_DEGREE, len(points) // 3)
-    weight = np.sqrt(points[:, PROB])
-    fx = np.polynomial.Polynomial.fit(z, points[:, X], degree, w=weight)
-    fy = np.polynomial.Polynomial.fit(z, points[:, Y], degree, w=weight)
+    domain = (z.min(), z.max())
+    coef = P.polyfit(mapdomain(z, domain, (-1, 1)), points[:, [X, Y]], degree,
+                     w=np.sqrt(points[:, PROB]))
     zs = np.append(np.arange(z.min(), z.max(), SAMPLE_STEP_M), z.max())
-    return np.column_stack([fx(zs), fy(zs), zs])
+    return np.column_stack([P.polyval(mapdomain(zs, domain, (-1, 1)), coef).T, zs])
 
 
 def extend_to_row_edge(lane: np.ndarray, top_row: float, cfg: SaladConfig) -> np.ndarray:
@@ -143,8 +169,8 @@ def extend_to_row_edge(lane: np.ndarray, top_row: float, cfg: SaladConfig) -> np
     extra = np.arange(z[-1] + SAMPLE_STEP_M, cfg.max_depth_m + 1e-9, SAMPLE_STEP_M)
     if tail.sum() < 2 or not len(extra):
         return lane
-    x = np.polyval(np.polyfit(z[tail], lane[tail, 0], 1), extra)
-    y = np.polyval(np.polyfit(z[tail], lane[tail, 1], 1), extra)
+    slope, start = np.polyfit(z[tail], lane[tail, :2], 1)
+    x, y = start[:, None] + slope[:, None] * extra
     cam = cfg.camera
     inside = cam.focal * y / extra + cam.cy >= top_row * STRIDE - 0.5  # image v, top edge
     n = len(inside) if inside.all() else int(np.argmin(inside))

@@ -34,8 +34,9 @@ class CameraParams:
         '', 'SALAD weights (.pt), or the name of shipped ones: empty = salad (cameras 1.2-2.0 m '
         'over the road), salad_wide_mount (1.2-3.0 m)')
     model_threads: int = documented(
-        0, 'CPU threads for the model; 0 = auto: 1 (two OpenMP threads beside the executor and '
-        'other work on a 2-core CPU ran the model up to 40x slower)', range='[0, 1024]')
+        0, 'CPU threads for the model; 0 = auto: one per core with ONNX Runtime, 1 with '
+        'TorchScript (whose OpenMP threads beside other work ran the model up to 40x slower)',
+        range='[0, 1024]')
     model_runtime: str = documented(
         'auto', "how the network runs: 'auto' (ONNX Runtime when installed, else TorchScript), "
         "'onnxruntime' or 'torchscript'", choices=('auto', 'onnxruntime', 'torchscript'))
