@@ -341,6 +341,37 @@ def test_an_autolabel_once_json_gives_a_real_image_its_lanes(tmp_path):
     np.testing.assert_allclose(sample.lanes[0][-1], [0.3, 1.8, 19.0])
 
 
+def test_salad_real_scores_each_image_against_its_own_lifted_labels(tmp_path, capsys):
+    import json
+
+    from PIL import Image
+
+    from fhld_ros.cli import main
+
+    k = [[800.0, 0.0, 320.0], [0.0, 800.0, 180.0], [0.0, 0.0, 1.0]]
+    nuscenes, pjlab = tmp_path / 'nuscenes_camera_lidar', tmp_path / 'pjlab_camera_lidar_pair'
+    nuscenes.mkdir()
+    pjlab.mkdir()
+    image = Image.fromarray(np.full((360, 640, 3), 90, dtype=np.uint8))
+    image.save(nuscenes / 'n015__CAM_FRONT__1.jpg')
+    image.save(pjlab / '0.png')
+    (nuscenes / 'calib.json').write_text(json.dumps(
+        {'cams': {'CAM_FRONT': {'cam2img': [row + [0.0] for row in k] + [[0, 0, 0, 1.0]]}}}))
+    (pjlab / 'center_camera-intrinsic.json').write_text(json.dumps(
+        {'center_camera-intrinsic': {'param': {'cam_K': {'data': k}}}}))
+    line = [[0.0, 1.5, 6.0], [0.0, 1.5, 16.0]]
+    gts = {}
+    for name, lanes in (('nus', [line, line]), ('pj', [line])):
+        gts[name] = tmp_path / f'{name}.json'
+        gts[name].write_text(json.dumps({'lanes': lanes}))
+    assert main(['salad-real', str(tmp_path), '--nuscenes-gt', str(gts['nus']),
+                 '--pjlab-gt', str(gts['pj']), '--json']) == 0
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert result['nuscenes']['tau_0.30']['gt'] == 2 and result['pjlab']['tau_0.30']['gt'] == 1
+    assert result['nuscenes']['tau_0.30']['images'] == 1 == result['pjlab']['tau_0.30']['images']
+    assert set(result['lanes']) == {'nuscenes_cam_front', 'pjlab_center_camera'}
+
+
 def test_training_can_start_from_shipped_weights(tmp_path):
     from fhld_ros.cli import main
     from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT

@@ -33,6 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--pjlab-gt', type=Path, metavar='JSON',
                         help="the PJLab image's lanes from its hand 2D labels lifted by `fhld "
                         "autolabel --once-json` (docs/salad.md): scores that image too")
+    parser.add_argument('--nuscenes-gt', type=Path, metavar='JSON',
+                        help="the same for the nuScenes CAM_FRONT image")
     parser.add_argument('--json', action='store_true')
 
 
@@ -74,12 +76,15 @@ def run(args: argparse.Namespace) -> int:
         print(f'OpenLane, {row["images"]} images, {row["gt"]} GT lanes: F1 {row["F1"]:.1f} '
               f'P {row["P"]:.1f} R {row["R"]:.1f} CD {row["CD"]:.3f} m (tau_CD 0.3)')
     others = list(unlabelled_images(args.dir))
-    if args.pjlab_gt:
-        others = [with_lanes(s, args.pjlab_gt) if s.name == 'pjlab_center_camera' else s
-                  for s in others]
-        results['pjlab'] = score(detector, [s for s in others if s.lanes])
-        row = results['pjlab']['tau_0.30']
-        print(f'PJLab, {row["gt"]} lifted hand-labelled lanes: F1 {row["F1"]:.1f} '
+    for key, title, name, gt in (('pjlab', 'PJLab', 'pjlab_center_camera', args.pjlab_gt),
+                                 ('nuscenes', 'nuScenes', 'nuscenes_cam_front',
+                                  args.nuscenes_gt)):
+        if gt is None:
+            continue
+        others = [with_lanes(s, gt) if s.name == name else s for s in others]
+        results[key] = score(detector, [s for s in others if s.name == name])
+        row = results[key]['tau_0.30']
+        print(f'{title}, {row["gt"]} lifted hand-labelled lanes: F1 {row["F1"]:.1f} '
               f'P {row["P"]:.1f} R {row["R"]:.1f} CD {row["CD"]:.3f} m (tau_CD 0.3)')
     if args.draw:
         args.draw.mkdir(parents=True, exist_ok=True)
