@@ -30,6 +30,8 @@ class LaneOutput:
     ego_left: np.ndarray | None
     ego_right: np.ndarray | None
     timings_ms: dict[str, float] = field(default_factory=dict)
+    # the camera's height over the plane its lanes span (camera detector; None: they span none)
+    lanes_plane_height_m: float | None = None
 
 
 class LaneIdTracker:

@@ -9,6 +9,7 @@ and images DDS lost on the way; images left out on purpose (a 30 Hz camera at ra
 not drops. latency_ms = image arrival (its callback) -> its lanes published. Stage medians (ms):
 image_decode = message -> array, wait = arrival -> detection start, warp / model / decode =
 SaladDetector's stages, output = frames, ids and outline, publish = the three messages.
+window_lanes_plane_height_m: the median height of the camera over the plane its lanes span.
 Times are time.monotonic() seconds, and every method takes `now`, so tests need no sleeping.
 """
 from __future__ import annotations
@@ -57,13 +58,18 @@ class CameraStats(WindowedStats):
         self.arrived(stamp_ns, arrived)
 
     def detection_done(self, stamp_ns: int, start: float, timings_ms: Mapping[str, float],
-                       done: float, publish_ms: float) -> None:
+                       done: float, publish_ms: float,
+                       lanes_plane_height_m: float | None = None) -> None:
+        """lanes_plane_height_m: the camera's height over the plane its lanes span, as
+        LaneOutput has it (None: they span none)."""
         latency = self.latency(self.arrived_at.pop(stamp_ns, None), start, done)
         for name in ('warp', 'model', 'decode', 'output'):
             if f'{name}_ms' in timings_ms:
                 self.stages_ms[name].append(timings_ms[f'{name}_ms'])
         self.stages_ms['publish'].append(publish_ms)
         self.event('detections', done, latency)
+        if lanes_plane_height_m is not None:
+            self.event('lanes_plane_height_m', done, lanes_plane_height_m)
 
     def assess(self, now: float) -> tuple[bytes, str, dict[str, str]]:
         """(level, message, window values) of the last window_sec seconds."""
@@ -89,6 +95,10 @@ class CameraStats(WindowedStats):
             values['window_latency_ms_p95'] = f'{p95:.1f}'
         if since is not None:
             values['seconds_since_image'] = f'{since:.1f}'
+        # the network's own read of its mount: far from the camera's real height, every depth
+        # is off by as much (a real camera read 35 % high, docs/salad.md); give road_plane_m
+        if heights := self.recent_values('lanes_plane_height_m', now):
+            values['window_lanes_plane_height_m'] = f'{np.median(heights):.2f}'
         return (*verdict(found), values)
 
     def status(self, pipeline_counters: Mapping[str, int], input_reliability: str,

@@ -150,7 +150,7 @@ class CameraLaneDetectorNode(Node):
                 self.lane_pubs[suffix].publish(cdr)
             done = time.monotonic()
             self.stats.detection_done(out.stamp_ns, start, out.timings_ms, done,
-                                      (done - detected) * 1e3)
+                                      (done - detected) * 1e3, out.lanes_plane_height_m)
             return True
         except Exception as exc:
             self.stats.error('detection_errors', exc)

@@ -314,7 +314,8 @@ class CameraPipeline:
         T[:3, :3] = T[:3, :3] @ OPTICAL_TO_FLU.T
         lanes = [lane @ T[:3, :3].T + T[:3, 3] for lane in lanes_flu]
         left, right = ego_lane_bounds(lanes_flu, EGO_REACH_M)
-        outline = self.outline(image.camera, lanes_flu)
+        plane = lanes_plane(lanes_flu)
+        outline = self.outline(image.camera, plane)
         self.counters['detections'] += 1
         timings = dict(self.detector.timings_ms)
         timings['output_ms'] = (time.perf_counter() - start) * 1e3
@@ -322,19 +323,21 @@ class CameraPipeline:
             stamp_ns=image.stamp_ns, frame_id=frame, lanes=lanes, confidences=confidences,
             ids=self.ids.assign(lanes_flu), outline=outline @ T[:3, :3].T + T[:3, 3],
             ego_left=None if left is None else lanes[left],
-            ego_right=None if right is None else lanes[right], timings_ms=timings)
+            ego_right=None if right is None else lanes[right], timings_ms=timings,
+            lanes_plane_height_m=None if plane is None else float(-plane[0] @ plane[1]))
 
-    def outline(self, camera: CameraIntrinsics, lanes_flu: list[np.ndarray]) -> np.ndarray:
+    def outline(self, camera: CameraIntrinsics,
+                lanes_plane: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
         """(5, 3) closed outline, camera forward-left-up frame, of the ground the model saw up
-        to the decoder's depth, on the known mount's road, else the lanes' plane, else a level
-        road (see the module doc); the camera's position five times when it saw no ground (a
-        camera looking up)."""
+        to the decoder's depth, on the known mount's road, else the plane the lanes span
+        (lanes_plane()), else a level road (see the module doc); the camera's position five
+        times when it saw no ground (a camera looking up)."""
         cfg = self.detector.cfg
         region = seen_region(camera, cfg.camera)
         T_flu_optical = np.eye(4)
         T_flu_optical[:3, :3] = OPTICAL_TO_FLU
         level = (np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -self.params.camera_height_m]))
-        for plane in (self.mount_plane, lanes_plane(lanes_flu), level):
+        for plane in (self.mount_plane, lanes_plane, level):
             if plane is None or region is None:
                 continue
             ground = camera_footprint(region, T_flu_optical, *plane, cfg.max_depth_m)
