@@ -134,6 +134,7 @@ def test_a_drives_camera_moves_to_a_given_height_and_keeps_its_pitch_and_lens():
     for bad in (['-1'], ['2', '1'], ['1', '2', '3']):
         assert main(['salad-eval', '--drives', '1', '--camera-height', *bad]) == 2
     assert main(['salad-eval', '--drives', '1', '--first-drive', '-1']) == 2
+    assert main(['salad-eval', '--drives', '1', '--workers', '0']) == 2
 
 
 def test_held_out_drives_start_where_asked():
@@ -141,3 +142,13 @@ def test_held_out_drives_start_where_asked():
     from fhld_ros.salad.evaluate import held_out_drives
     sample = next(held_out_drives(1, 1, 'val', first=60))
     assert sample.name == f'sim seed {salad_seeds("val", 1, 60)[0]} sweep 0'
+
+
+def test_held_out_drives_rendered_in_processes_are_the_same_images_in_order():
+    from fhld_ros.salad.evaluate import held_out_drives
+    serial = list(held_out_drives(3, 1, 'val', first=7))
+    pooled = list(held_out_drives(3, 1, 'val', first=7, workers=2))
+    assert [s.name for s in pooled] == [s.name for s in serial]
+    for a, b in zip(serial, pooled):
+        assert np.array_equal(a.image, b.image) and len(a.lanes) == len(b.lanes)
+        assert all(np.array_equal(x, y) for x, y in zip(a.lanes, b.lanes))

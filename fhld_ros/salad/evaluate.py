@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import multiprocessing
 import sys
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -80,6 +81,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              'mount (simulated drives), up to M metres (0: off; 40 chosen on '
                              'the validation images)')
     add_camera_height(parser)
+    parser.add_argument('--workers', type=int, default=1,
+                        help='processes rendering the simulated drives (the scoring stays in '
+                             'one; the same images and scores at any number)')
     parser.add_argument('--json', action='store_true', help='print one JSON object last')
 
 
@@ -135,10 +139,24 @@ def _by_range(errors: np.ndarray) -> dict[str, dict]:
 
 
 def held_out_drives(drives: int, frames: int, split: str = 'test',
-                    heights_m: tuple[float, float] | None = None, first: int = 0
-                    ) -> Iterator[CameraLaneSample]:
-    for seed in salad_seeds(split, drives, first):
-        yield from simulated_samples(seed, frames, heights_m=heights_m)
+                    heights_m: tuple[float, float] | None = None, first: int = 0,
+                    workers: int = 1) -> Iterator[CameraLaneSample]:
+    """The images of the split's drives, in seed order; rendered by `workers` processes
+    (ahead of the scoring, which runs in this one) when more than one."""
+    jobs = [(seed, frames, heights_m) for seed in salad_seeds(split, drives, first)]
+    if workers <= 1:
+        for job in jobs:
+            yield from _drive_samples(job)
+        return
+    with multiprocessing.Pool(workers) as pool:  # leaving it terminates the workers
+        for samples in pool.imap(_drive_samples, jobs):
+            yield from samples
+
+
+def _drive_samples(job: tuple[int, int, tuple[float, float] | None]
+                   ) -> list[CameraLaneSample]:
+    seed, frames, heights_m = job
+    return list(simulated_samples(seed, frames, heights_m=heights_m))
 
 
 def _print(name: str, rows: dict[str, dict]) -> None:
@@ -154,9 +172,10 @@ def _print(name: str, rows: dict[str, dict]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.drives < 0 or args.first_drive < 0 or args.frames < 1 or args.road_plane < 0:
-        raise ConfigError('--drives, --first-drive and --road-plane must be >= 0 and --frames '
-                          '>= 1')
+    if args.drives < 0 or args.first_drive < 0 or args.frames < 1 or args.road_plane < 0 or \
+            args.workers < 1:
+        raise ConfigError('--drives, --first-drive and --road-plane must be >= 0, --frames and '
+                          '--workers >= 1')
     heights = camera_heights(args)
     detector = SaladDetector(args.checkpoint, flip_average=args.flip_average)
     perfect = PerfectMaps(detector, args.perfect) if args.perfect else None
@@ -164,7 +183,7 @@ def run(args: argparse.Namespace) -> int:
     if args.drives:
         split = 'val' if args.validation else 'test'
         sources['validation' if args.validation else 'simulated'] = held_out_drives(
-            args.drives, args.frames, split, heights, args.first_drive)
+            args.drives, args.frames, split, heights, args.first_drive, args.workers)
     if args.once:
         sources['once'] = read_once(args.once, args.once_split)
     if args.openlane:
