@@ -327,17 +327,17 @@ class CameraPipeline:
             lanes_plane_height_m=None if plane is None else float(-plane[0] @ plane[1]))
 
     def outline(self, camera: CameraIntrinsics,
-                lanes_plane: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+                lanes_ground: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
         """(5, 3) closed outline, camera forward-left-up frame, of the ground the model saw up
-        to the decoder's depth, on the known mount's road, else the plane the lanes span
-        (lanes_plane()), else a level road (see the module doc); the camera's position five
-        times when it saw no ground (a camera looking up)."""
+        to the decoder's depth, on the known mount's road, else lanes_ground (the plane the
+        lanes span, lanes_plane()), else a level road (see the module doc); the camera's
+        position five times when it saw no ground (a camera looking up)."""
         cfg = self.detector.cfg
         region = seen_region(camera, cfg.camera)
         T_flu_optical = np.eye(4)
         T_flu_optical[:3, :3] = OPTICAL_TO_FLU
         level = (np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -self.params.camera_height_m]))
-        for plane in (self.mount_plane, lanes_plane, level):
+        for plane in (self.mount_plane, lanes_ground, level):
             if plane is None or region is None:
                 continue
             ground = camera_footprint(region, T_flu_optical, *plane, cfg.max_depth_m)

@@ -87,7 +87,7 @@ def group_points(points: np.ndarray) -> list[np.ndarray]:
     """Indices of the points of each lane (see the module doc). A loop over depth slices, each
     with a few points: the cells themselves were reduced to points without Python loops. A
     lane takes at most one point a slice, so its depth grows point by point, and its heading
-    (its end and lateral slope, `_Lane.head`) changes only when it takes one."""
+    (its end and lateral slope, `_Lane.add`) changes only when it takes one."""
     if not len(points):
         return []
     order = np.argsort(points[:, SLICE], kind='stable')

@@ -27,12 +27,11 @@ MIRROR_SIGN = torch.tensor([-1.0, 1.0, 1.0]).view(3, 1, 1)  # du, dv, dz of a mi
 
 class SaladDetector:
     """runtime: 'auto' (ONNX Runtime when installed, else TorchScript), 'onnxruntime' or
-    'torchscript';
-    threads: the network's CPU threads (0: one per core with ONNX Runtime, whose workers do
-    not spin, and one with TorchScript, whose OpenMP threads beside other work on 2 cores ran
-    the network up to 40x slower); the few torch ops around the network run on one thread
-    unless threads says more. flip_average: average the maps of the image and its mirror
-    image (see the module doc)."""
+    'torchscript'; threads: the network's CPU threads (0: one per core with ONNX Runtime,
+    whose workers do not spin, and one with TorchScript, whose OpenMP threads beside other work
+    on 2 cores ran the network up to 40x slower); the few torch ops around the network run on
+    one thread unless threads says more. flip_average: average the maps of the image and its
+    mirror image (see the module doc)."""
 
     def __init__(self, checkpoint: str | os.PathLike = DEFAULT_SALAD_CHECKPOINT,
                  threads: int = 0, runtime: str = 'auto', flip_average: bool = True) -> None:
