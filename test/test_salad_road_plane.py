@@ -43,7 +43,7 @@ def test_the_output_frames_ground_is_the_plane_of_a_level_mount():
     road = RoadPlane.from_extrinsic(T)
     level = RoadPlane.level(HEIGHT, PITCH)
     np.testing.assert_allclose(road.normal, level.normal, atol=1e-9)
-    assert road.height_m == pytest.approx(HEIGHT) and road.until_m == 40.0
+    assert road.height_m == pytest.approx(HEIGHT) and road.until_m == 20.0
     # a level camera: the row 100 px below the centre sees the road at f h / 100
     flat = RoadPlane.level(HEIGHT, 0.0)
     assert flat.depth(np.array([CAMERA.cx]), np.array([CAMERA.cy + 100.0]), CAMERA)[0] == \

@@ -78,7 +78,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='one network pass per image, not the mean with its mirror image')
     parser.add_argument('--road-plane', type=float, default=0.0, metavar='M',
                         help="the near lanes' depth from the road plane of the camera's known "
-                             'mount (simulated drives), up to M metres (0: off; 40 chosen on '
+                             'mount (simulated drives), up to M metres (0: off; 20 chosen on '
                              'the validation images)')
     add_camera_height(parser)
     parser.add_argument('--workers', type=int, default=1,

@@ -60,7 +60,7 @@ class CameraParams:
         0.0, "lanes nearer than this (metres) take their depth from the road under the camera: "
         "output_frame's z = 0 plane (e.g. base_footprint) through camera_to_output, blending "
         "into the network's depth up to 1.5 x this; 0 = off, the network's depth throughout "
-        '(no extrinsics needed); 40 scored best on simulated validation drives',
+        '(no extrinsics needed); 20 scored best on simulated validation drives',
         range='[0, 1000]')
     camera_height_m: float = documented(
         1.5, 'height of the camera over the road, used for the searched-area outline when the '

@@ -16,7 +16,7 @@ import numpy as np
 
 from fhld_ros.salad.virtual_camera import VirtualCamera
 
-UNTIL_M = 40.0  # chosen on SALAD's validation images (docs/salad.md, "A known mount")
+UNTIL_M = 20.0  # chosen on SALAD's validation images (docs/salad.md, "A known mount")
 BLEND = 1.5  # the plane's weight falls from 1 at until_m to 0 at BLEND x until_m
 MIN_COSINE = 1e-6  # rays this close to parallel to the road never meet it
 
