@@ -201,11 +201,17 @@ def lanes_plane(lanes_flu: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray] | 
     if len(points) < PLANE_MIN_POINTS or np.ptp(points[:, 1]) < PLANE_SPREAD_M:
         return None
     normal, point = ground_plane(points)
-    height = float(-normal @ point)
+    height = height_over((normal, point))
     tilt = np.degrees(np.arccos(np.clip(normal[2], -1.0, 1.0)))
     if not PLANE_HEIGHT_M[0] <= height <= PLANE_HEIGHT_M[1] or tilt > PLANE_MAX_TILT_DEG:
         return None
     return normal, point
+
+
+def height_over(plane: tuple[np.ndarray, np.ndarray]) -> float:
+    """The camera's height (metres) over a plane (up normal, point) in its own frame."""
+    normal, point = plane
+    return float(-normal @ point)
 
 
 class CameraPipeline:
@@ -324,7 +330,7 @@ class CameraPipeline:
             ids=self.ids.assign(lanes_flu), outline=outline @ T[:3, :3].T + T[:3, 3],
             ego_left=None if left is None else lanes[left],
             ego_right=None if right is None else lanes[right], timings_ms=timings,
-            lanes_plane_height_m=None if plane is None else float(-plane[0] @ plane[1]))
+            lanes_plane_height_m=None if plane is None else height_over(plane))
 
     def outline(self, camera: CameraIntrinsics,
                 lanes_ground: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
