@@ -20,8 +20,6 @@ from __future__ import annotations
 from bisect import bisect_right
 
 import numpy as np
-from numpy.polynomial import polynomial as P
-from numpy.polynomial.polyutils import mapdomain
 
 from fhld_ros.salad.config import STRIDE, SaladConfig
 from fhld_ros.salad.road_plane import RoadPlane
@@ -85,79 +83,79 @@ def lane_points(prob: np.ndarray, spatial: np.ndarray, cfg: SaladConfig,
 
 def group_points(points: np.ndarray) -> list[np.ndarray]:
     """Indices of the points of each lane (see the module doc). A loop over depth slices, each
-    with a few points: the cells themselves were reduced to points without Python loops. A
-    lane takes at most one point a slice, so its depth grows point by point, and its heading
-    (its end and lateral slope, `_Lane.add`) changes only when it takes one."""
-    if not len(points):
-        return []
-    order = np.argsort(points[:, SLICE], kind='stable')
-    runs = np.flatnonzero(np.diff(points[order, SLICE])) + 1
+    with a few points, in plain Python floats: the cells themselves were reduced to points
+    without Python loops, and numpy's cost per call on arrays of a few elements was most of
+    the decoding's time. A lane takes at most one point a slice, so its depth grows point by
+    point, and its heading (its end and lateral slope, `_Lane.add`) changes only when it takes
+    one."""
+    order = np.argsort(points[:, SLICE], kind='stable').tolist()
+    x, z, depth_slice = (points[order, column].tolist() for column in (X, Z, SLICE))
     lanes: list[_Lane] = []
-    heads = np.zeros((len(points), 3))  # (x, z, dx/dz) of each lane's end
-    last_slice = np.zeros(len(points))
-    for here in np.split(order, runs):
-        depth_slice = points[here[0], SLICE]
-        alive = np.flatnonzero(depth_slice - last_slice[:len(lanes)] <= GAP_SLICES)
-        used = np.zeros(len(here), dtype=bool)
-        if len(alive):
-            ends = heads[alive]
-            reach = link_reach(points[here, Z])
-            ahead = ends[None, :, 0] + ends[None, :, 2] * (points[here, Z][:, None]
-                                                          - ends[None, :, 1])
-            cost = np.abs(points[here, X][:, None] - ahead)
-            pairs = np.argsort(cost, axis=None)  # greedy, nearest pairs first, within reach
-            pairs = pairs[cost.flat[pairs] <= reach[pairs // len(alive)]]
-            taken: set[int] = set()
-            for flat in pairs:
-                a, b = divmod(int(flat), len(alive))
-                if used[a] or b in taken:
-                    continue
-                lane = alive[b]
-                heads[lane] = lanes[lane].add(int(here[a]), points[here[a]])
-                last_slice[lane] = depth_slice
-                used[a] = True
-                taken.add(b)
-        for a in np.flatnonzero(~used):
-            heads[len(lanes)] = (lane := _Lane()).add(int(here[a]), points[here[a]])
-            last_slice[len(lanes)] = depth_slice
-            lanes.append(lane)
+    first = 0
+    while first < len(order):
+        here = range(first, bisect_right(depth_slice, depth_slice[first], first))
+        first = here.stop
+        alive = [lane for lane in lanes if depth_slice[here[0]] - lane.slice <= GAP_SLICES]
+        # greedy, nearest pairs first, within reach
+        pairs = sorted((abs(x[a] - lane.ahead(z[a])), a, b) for a in here
+                       for b, lane in enumerate(alive))
+        used: set[int] = set()
+        taken: set[int] = set()
+        for cost, a, b in pairs:
+            if a in used or b in taken or cost > max(LINK_M, LINK_FRACTION * z[a]):
+                continue
+            alive[b].add(order[a], x[a], z[a], depth_slice[a])
+            used.add(a)
+            taken.add(b)
+        for a in here:
+            if a not in used:
+                lanes.append(_Lane())
+                lanes[-1].add(order[a], x[a], z[a], depth_slice[a])
     return [np.array(lane.indices) for lane in lanes]
 
 
 class _Lane:
-    """The points of one lane so far, near to far: indices, x and z."""
+    """The points of one lane so far, near to far: indices, x and z; its end, lateral slope
+    dx/dz over the last HEADING_M (0 over less) and depth slice."""
 
     def __init__(self) -> None:
         self.indices: list[int] = []
         self.x: list[float] = []
         self.z: list[float] = []
+        self.slope = 0.0
+        self.slice = 0.0
 
-    def add(self, index: int, point: np.ndarray) -> tuple[float, float, float]:
-        """Takes a point; returns the lane's new end (x, z) and its lateral slope dx/dz over
-        the last HEADING_M (0 over less)."""
-        x, z = float(point[X]), float(point[Z])
+    def ahead(self, z: float) -> float:
+        """The lane's lateral position x at depth z, on its heading."""
+        return self.x[-1] + self.slope * (z - self.z[-1])
+
+    def add(self, index: int, x: float, z: float, depth_slice: float) -> None:
         back = bisect_right(self.z, z - HEADING_M) - 1  # depth grows: the last point that far
         self.indices.append(index)
         self.x.append(x)
         self.z.append(z)
-        if back < 0:
-            return x, z, 0.0
-        return x, z, (x - self.x[back]) / (z - self.z[back])
+        self.slice = depth_slice
+        self.slope = 0.0 if back < 0 else (x - self.x[back]) / (z - self.z[back])
 
 
 def fit_lane(points: np.ndarray) -> np.ndarray | None:
     """x(z) and y(z) polynomials through a lane's points (probability-weighted), sampled
     near to far; None for too few points or too short a lane. Both in one solve, over z mapped
-    to [-1, 1] (as Polynomial.fit does: the powers of metres stay well conditioned)."""
+    to [-1, 1] and the columns scaled to unit norm (as numpy's Polynomial.fit does: the powers
+    of metres stay well conditioned), without its checks, which cost more than the solve."""
     z = points[:, Z]
-    if len(points) < MIN_POINTS or np.ptp(z) < MIN_LENGTH_M:
+    z_min, z_max = z.min(), z.max()
+    if len(points) < MIN_POINTS or z_max - z_min < MIN_LENGTH_M:
         return None
     degree = min(MAX_DEGREE, len(points) // 3)
-    domain = (z.min(), z.max())
-    coef = P.polyfit(mapdomain(z, domain, (-1, 1)), points[:, [X, Y]], degree,
-                     w=np.sqrt(points[:, PROB]))
-    zs = np.append(np.arange(z.min(), z.max(), SAMPLE_STEP_M), z.max())
-    return np.column_stack([P.polyval(mapdomain(zs, domain, (-1, 1)), coef).T, zs])
+    half, mid = (z_max - z_min) / 2, (z_max + z_min) / 2
+    w = np.sqrt(points[:, PROB])[:, None]
+    design = np.vander((z - mid) / half, degree + 1, increasing=True) * w
+    norm = np.sqrt(np.square(design).sum(0))
+    coef = np.linalg.lstsq(design / norm, points[:, [X, Y]] * w, rcond=None)[0] / norm[:, None]
+    zs = np.append(np.arange(z_min, z_max, SAMPLE_STEP_M), z_max)
+    return np.column_stack([np.vander((zs - mid) / half, degree + 1, increasing=True) @ coef,
+                            zs])
 
 
 def extend_to_row_edge(lane: np.ndarray, top_row: float, cfg: SaladConfig) -> np.ndarray:
@@ -169,8 +167,11 @@ def extend_to_row_edge(lane: np.ndarray, top_row: float, cfg: SaladConfig) -> np
     extra = np.arange(z[-1] + SAMPLE_STEP_M, cfg.max_depth_m + 1e-9, SAMPLE_STEP_M)
     if tail.sum() < 2 or not len(extra):
         return lane
-    slope, start = np.polyfit(z[tail], lane[tail, :2], 1)
-    x, y = start[:, None] + slope[:, None] * extra
+    # the least-squares line through the tail, x and y against z
+    dz = z[tail] - z[tail].mean()
+    centre = lane[tail, :2].mean(0)
+    slope = dz @ (lane[tail, :2] - centre) / (dz @ dz)
+    x, y = centre[:, None] + slope[:, None] * (extra - z[tail].mean())
     cam = cfg.camera
     inside = cam.focal * y / extra + cam.cy >= top_row * STRIDE - 0.5  # image v, top edge
     n = len(inside) if inside.all() else int(np.argmin(inside))
@@ -185,9 +186,9 @@ def decode(prob: np.ndarray, spatial: np.ndarray, cfg: SaladConfig,
     points = lane_points(prob, spatial, cfg, road)
     lanes, scores = [], []
     for index in group_points(points):
-        lane = fit_lane(points[index])
         score = float(points[index, PROB].mean())
-        if lane is not None and score >= cfg.score_threshold:
+        lane = fit_lane(points[index]) if score >= cfg.score_threshold else None
+        if lane is not None:
             lanes.append(extend_to_row_edge(lane, points[index, TOP_ROW].min(), cfg))
             scores.append(score)
     return lanes, np.asarray(scores, dtype=np.float64)
