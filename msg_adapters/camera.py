@@ -1,11 +1,14 @@
-"""Camera messages: sensor_msgs/Image <-> (H, W, 3) uint8, sensor_msgs/CameraInfo <-> pinhole
-intrinsics, and tf2_msgs/TFMessage <-> 4x4 transforms (any message family, rosbags or rclpy)."""
+"""Camera messages: sensor_msgs/Image and CompressedImage <-> (H, W, 3) uint8,
+sensor_msgs/CameraInfo <-> pinhole intrinsics, and tf2_msgs/TFMessage <-> 4x4 transforms (any
+message family, rosbags or rclpy)."""
 from __future__ import annotations
 
 import array
+import io
 from typing import Any
 
 import numpy as np
+from PIL import Image
 
 from msg_adapters.family import MessageFamily
 from msg_adapters.odometry import rigid_matrix, rigid_message
@@ -13,6 +16,13 @@ from msg_adapters.odometry import rigid_matrix, rigid_message
 # encodings msg_to_image reads: channels and whether they are stored blue first
 _ENCODINGS = {'rgb8': (3, False), 'bgr8': (3, True), 'mono8': (1, False),
               'rgba8': (4, False), 'bgra8': (4, True)}
+# 4:2:2 YUV (two pixels in four bytes, as USB and GigE cameras send it): the byte offsets of
+# Y0, U, Y1, V. ROS's 'yuv422' is UYVY; 'yuv422_yuy2' is YUYV.
+_YUV422 = {'yuv422': (1, 0, 3, 2), 'uyvy': (1, 0, 3, 2), 'yuv422_yuy2': (0, 1, 2, 3),
+           'yuyv': (0, 1, 2, 3)}
+# what image_transport's compressed plugin writes; 'compressedDepth' is depth, not an image
+_COMPRESSED_FORMATS = ('JPEG', 'PNG', 'TIFF')
+_COLOUR_MODES = ('1', 'L', 'LA', 'P', 'PA', 'RGB', 'RGBA', 'RGBX', 'CMYK', 'YCbCr')
 # models whose first five coefficients are plumb_bob's (rational_polynomial adds k4..k6)
 _PLUMB_BOB_LIKE = ('plumb_bob', 'rational_polynomial', '')
 
@@ -34,24 +44,71 @@ def _data_field(family: MessageFamily, flat: np.ndarray) -> Any:
 
 
 def msg_to_image(msg: Any) -> np.ndarray:
-    """sensor_msgs/Image (rgb8, bgr8, rgba8, bgra8 or mono8; rows may be padded) -> (H, W, 3)
-    uint8 RGB. ValueError for another encoding or a data size that does not match."""
+    """sensor_msgs/Image (rgb8, bgr8, rgba8, bgra8, mono8, or 4:2:2 YUV: yuv422 / uyvy,
+    yuv422_yuy2 / yuyv; rows may be padded) or sensor_msgs/CompressedImage (JPEG, PNG or TIFF,
+    as image_transport's compressed plugin writes them) -> (H, W, 3) uint8 RGB. ValueError for
+    another encoding or format, or data that do not hold the image."""
+    if not hasattr(msg, 'encoding') and hasattr(msg, 'format'):
+        return compressed_to_image(msg)
     encoding = str(msg.encoding).lower()
-    if encoding not in _ENCODINGS:
+    if encoding not in _ENCODINGS and encoding not in _YUV422:
         raise ValueError(f'image encoding {msg.encoding!r} is not supported (use '
-                         f'{", ".join(_ENCODINGS)})')
-    channels, blue_first = _ENCODINGS[encoding]
+                         f'{", ".join([*_ENCODINGS, *_YUV422])})')
+    channels, blue_first = _ENCODINGS.get(encoding, (2, False))
     height, width, step = int(msg.height), int(msg.width), int(msg.step)
     data = np.frombuffer(_as_bytes(msg.data), dtype=np.uint8)
-    if step < width * channels or data.size < step * height:
+    if step < width * channels or data.size < step * height or (channels == 2 and width % 2):
         raise ValueError(f'image {width}x{height} {encoding}: step {step} and {data.size} '
                          f'data bytes do not hold it')
     rows = data[:step * height].reshape(height, step)[:, :width * channels]
+    if encoding in _YUV422:
+        return _yuv422_to_rgb(rows.reshape(height, width // 2, 4), _YUV422[encoding])
     pixels = rows.reshape(height, width, channels)
     if channels == 1:
         return np.repeat(pixels, 3, axis=2)
     rgb = pixels[..., 2::-1] if blue_first else pixels[..., :3]
     return np.ascontiguousarray(rgb)
+
+
+def _yuv422_to_rgb(pairs: np.ndarray, offsets: tuple[int, int, int, int]) -> np.ndarray:
+    """(H, W / 2, 4) byte quads of two pixels -> (H, W, 3) RGB: BT.601 video range (Y 16-235,
+    U and V 16-240), the usual camera YUV, each pixel pair sharing its U and V."""
+    y0, u, y1, v = (pairs[..., i].astype(np.float32) for i in offsets)
+    luma = (np.stack([y0, y1], axis=-1) - 16.0) * (255.0 / 219.0)  # (H, W / 2, 2)
+    cb, cr = ((c - 128.0)[..., None] * (255.0 / 224.0) for c in (u, v))
+    rgb = np.stack([luma + 1.402 * cr, luma - 0.344136 * cb - 0.714136 * cr,
+                    luma + 1.772 * cb], axis=-1)  # (H, W / 2, 2, 3)
+    return np.clip(np.rint(rgb), 0, 255).astype(np.uint8).reshape(pairs.shape[0], -1, 3)
+
+
+def compressed_to_image(msg: Any) -> np.ndarray:
+    """sensor_msgs/CompressedImage -> (H, W, 3) uint8 RGB (grey images repeated into three
+    channels). ValueError naming the format for data that are not a JPEG, PNG or TIFF image of
+    8-bit channels, or do not decode."""
+    fmt = str(msg.format)
+    if 'compressedDepth' in fmt:
+        raise ValueError(f'compressed image format {fmt!r} is a depth image, not a camera '
+                         'image')
+    try:
+        with Image.open(io.BytesIO(_as_bytes(msg.data)), formats=_COMPRESSED_FORMATS) as image:
+            if image.mode not in _COLOUR_MODES:
+                raise ValueError(f'its pixels are {image.mode!r}, not 8-bit channels')
+            return np.asarray(image.convert('RGB'))
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as exc:
+        raise ValueError(f'compressed image (format {fmt!r}, {len(msg.data)} bytes) does not '
+                         f'decode as {", ".join(_COMPRESSED_FORMATS)}: {exc}') from None
+
+
+def compressed_image_msg(family: MessageFamily, header: Any, rgb: np.ndarray,
+                         fmt: str = 'jpeg', quality: int = 90) -> Any:
+    """(H, W, 3) uint8 RGB -> sensor_msgs/CompressedImage as image_transport's compressed
+    plugin writes it (format 'rgb8; jpeg compressed bgr8' or '... png ...')."""
+    buffer = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(rgb)).save(buffer, format=fmt.upper(),
+                                                   quality=quality)
+    flat = np.frombuffer(buffer.getvalue(), dtype=np.uint8)
+    return family.new('sensor_msgs/msg/CompressedImage', header=header,
+                      format=f'rgb8; {fmt} compressed bgr8', data=_data_field(family, flat))
 
 
 def _as_bytes(data: Any) -> Any:

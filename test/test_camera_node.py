@@ -11,6 +11,7 @@ itself (frames, ego lanes, outline, rate, refusals) is checked without DDS on a 
 from __future__ import annotations
 
 import dataclasses
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -20,7 +21,7 @@ import pytest
 import rclpy
 import torch
 from rclpy.parameter import Parameter
-from ros_helpers import RawLaneOutputs, feed, spinning, wait_until
+from ros_helpers import RawLaneOutputs, feed, settled, spinning, wait_until
 from sensor_msgs.msg import CameraInfo, Image
 
 from fhld_ros.bagio import BagWriter, read_raw
@@ -32,9 +33,9 @@ from fhld_ros.salad.config import SaladConfig
 from fhld_ros.salad.model import SaladNet
 from fhld_ros.salad.parameters import CameraParams
 from fhld_ros.salad.road_plane import RoadPlane
-from msg_adapters.camera import camera_info_msg, image_to_msg
+from msg_adapters.camera import camera_info_msg, compressed_image_msg, image_to_msg, msg_to_image
 from msg_adapters.family import rosbags_family
-from msg_adapters.lanes import DELETEALL, LINE_STRIP
+from msg_adapters.lanes import DELETEALL, LINE_STRIP, marker_array_stamp_ns
 from msg_adapters.odometry import euler_to_matrix
 
 pytestmark = [pytest.mark.ros]
@@ -155,6 +156,71 @@ def test_node_publishes_the_contract_and_the_replays_messages(drive, tmp_path, r
         assert values['last_error'].startswith('bad_camera_info: ')
         assert float(values['latency_ms_p95']) >= float(values['latency_ms_p50']) > 0
         assert {'stage_warp_ms_p50', 'stage_model_ms_p50', 'stage_decode_ms_p50'} <= set(values)
+
+
+def _compressed_bag(bag: Path, out: Path) -> None:
+    """The user bag with its images as PNG CompressedImages on /camera/image_raw/compressed,
+    as a recorder keeps them; its malformed image a PNG cut short."""
+    store = FAMILY.typestore
+    with BagWriter(out) as writer:
+        for topic, msgtype, stamp, raw in read_raw(bag, [CAMERA_INFO_TOPIC, IMAGE_TOPIC]):
+            if topic == CAMERA_INFO_TOPIC:
+                writer.write(topic, msgtype, stamp, raw)
+                continue
+            image = store.deserialize_cdr(raw, msgtype)
+            try:
+                rgb = msg_to_image(image)
+            except ValueError:  # the malformed one
+                rgb = None
+            msg = compressed_image_msg(FAMILY, image.header, np.zeros((540, 960, 3), np.uint8)
+                                       if rgb is None else rgb, 'png')
+            if rgb is None:
+                msg.data = msg.data[:len(msg.data) // 2]
+            writer.write(IMAGE_TOPIC + '/compressed', 'sensor_msgs/msg/CompressedImage', stamp,
+                         msg)
+
+
+def test_replay_reads_a_bags_compressed_images(drive, tmp_path):
+    bag, checkpoint = drive
+    params = CameraParams(checkpoint=str(checkpoint))
+    _compressed_bag(bag, tmp_path / 'compressed')
+    stats = {name: replay_camera(tmp_path / name if name == 'compressed' else bag,
+                                 tmp_path / f'{name}_lanes', params, progress=False)
+             for name in ('raw', 'compressed')}
+    assert stats['compressed'] == stats['raw']
+    assert (stats['raw']['dropped'], stats['raw']['detections']) == (1, IMAGES)
+    for suffix in LANE_TOPICS:  # PNG is lossless: the lanes of the raw images, byte for byte
+        lanes = [[raw for *_, raw in read_raw(tmp_path / f'{name}_lanes', ['/lanes' + suffix])]
+                 for name in ('raw', 'compressed')]
+        assert lanes[0] == lanes[1] and len(lanes[0]) == IMAGES
+
+
+@pytest.mark.slow
+def test_jpeg_images_from_a_separate_driver_process(drive, ros_env, rclpy_context,
+                                                    one_torch_thread):
+    """image_transport:=compressed: a driver's JPEG stream at 10 Hz, one image cut short."""
+    from fhld_ros.ros.camera_node import CameraLaneDetectorNode
+    _, checkpoint = drive
+    node = CameraLaneDetectorNode(context=rclpy_context, parameter_overrides=[
+        Parameter('checkpoint', value=str(checkpoint)),
+        Parameter('image_transport', value='compressed')])
+    probe = RawLaneOutputs(rclpy_context, 'jpeg_probe')
+    probe.start()
+    with spinning(node, probe):
+        done = subprocess.run([sys.executable, str(Path(__file__).parent / 'camera_publisher.py'),
+                               '--frames', '8', '--corrupt-after', '3'],
+                              env=ros_env, capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0, done.stderr
+        stamps = json.loads(done.stdout.splitlines()[-1])['stamps']
+        c = node.pipeline.counters
+        assert wait_until(lambda: c['images'] + c['bad_images'] == len(stamps) + 1
+                          and settled(node, probe), 30), dict(c)
+        assert c['bad_images'] == 1 and 'does not decode' in node.stats.last_error
+        # every good image detected or overtaken by a newer one (the newest wins)
+        assert c['images'] == c['detections'] + c['images_overtaken'] == len(stamps)
+        detected = [marker_array_stamp_ns(raw) for raw in probe.got['']]
+        assert set(detected) <= set(stamps) and detected[-1] == stamps[-1]
+        assert all(_check_contract(raw, 'camera') >= 1 for raw in probe.got[''])
 
 
 def _node_error(*ros_args: str) -> subprocess.CompletedProcess:

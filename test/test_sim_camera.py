@@ -4,10 +4,13 @@ lie on nearer things, and `fhld simulate --camera --labels2d` writes /tf_static,
 images and label files that read back through msg_adapters/camera.py and the calibration."""
 from __future__ import annotations
 
+import array
+import io
 from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 from scipy.spatial import cKDTree
 
 from fhld_ros.bagio import read_messages
@@ -23,6 +26,7 @@ from fhld_ros.sim.simulator import Simulator
 from msg_adapters.camera import (
     camera_info_msg,
     camera_info_values,
+    compressed_image_msg,
     image_to_msg,
     msg_to_image,
     tf_static_msg,
@@ -248,9 +252,81 @@ def test_tf_static_round_trips_through_cdr() -> None:
     ((parent, child, T2),) = tf_transforms(back)
     assert (parent, child) == ('lidar', 'camera') and np.allclose(T2, T)
     bgr = image_to_msg(family, family.header(0, 'camera'), np.zeros((2, 2, 3), np.uint8))
-    bgr.encoding = 'yuv422'
-    with pytest.raises(ValueError, match='yuv422'):
+    bgr.encoding = 'bayer_rggb8'
+    with pytest.raises(ValueError, match="'bayer_rggb8' is not supported"):
         msg_to_image(bgr)
+
+
+def _with_data(family, msg, data: bytes):
+    """msg with its data field replaced by `data`, as the family holds uint8[]."""
+    msg.data = np.frombuffer(data, np.uint8) if family.name == 'rosbags' else array.array(
+        'B', data)
+    return msg
+
+
+@pytest.mark.parametrize('family', [rosbags_family(), rclpy_family()], ids=lambda f: f.name)
+def test_compressed_images_read_as_image_transport_writes_them(family) -> None:
+    header = family.header(0, 'camera')
+    y, x = np.mgrid[0:60, 0:80]
+    rgb = np.stack([x * 3, y * 4, 255 - x * 2], axis=-1).astype(np.uint8)  # smooth: JPEG-able
+    png = compressed_image_msg(family, header, rgb, 'png')
+    assert png.format == 'rgb8; png compressed bgr8'
+    assert np.array_equal(msg_to_image(png), rgb)  # lossless
+    jpeg = compressed_image_msg(family, header, rgb, 'jpeg')
+    assert np.abs(msg_to_image(jpeg).astype(int) - rgb).mean() < 2.0
+    grey = io.BytesIO()
+    Image.fromarray(rgb[..., 1]).save(grey, format='JPEG')
+    back = msg_to_image(_with_data(family, jpeg, grey.getvalue()))
+    assert back.shape == (60, 80, 3) and np.array_equal(back[..., 0], back[..., 2])
+    cut = compressed_image_msg(family, header, rgb, 'png')
+    cut = _with_data(family, cut, bytes(cut.data)[:len(cut.data) // 2])
+    with pytest.raises(ValueError, match=r"format 'rgb8; png compressed bgr8', \d+ bytes\) "
+                       'does not decode'):
+        msg_to_image(cut)
+    depth = compressed_image_msg(family, header, rgb, 'png')
+    depth.format = '16UC1; compressedDepth png'
+    with pytest.raises(ValueError, match='is a depth image'):
+        msg_to_image(depth)
+    wide = io.BytesIO()
+    Image.fromarray((x * 800).astype(np.uint16)).save(wide, format='PNG')  # mono16
+    depth.format = 'mono16; png compressed mono16'
+    with pytest.raises(ValueError, match='not 8-bit channels'):
+        msg_to_image(_with_data(family, depth, wide.getvalue()))
+
+
+def _yuv_video_range(rgb: np.ndarray) -> np.ndarray:
+    """RGB -> BT.601 video-range Y, Cb, Cr (uint8), as a camera's YUV output holds them."""
+    r, g, b = np.moveaxis(rgb.astype(np.float64), -1, 0)
+    y = 16 + 219 / 255 * (0.299 * r + 0.587 * g + 0.114 * b)
+    cb = 128 + 224 / 255 * (-0.168736 * r - 0.331264 * g + 0.5 * b)
+    cr = 128 + 224 / 255 * (0.5 * r - 0.418688 * g - 0.081312 * b)
+    return np.rint(np.stack([y, cb, cr], axis=-1)).astype(np.uint8)
+
+
+@pytest.mark.parametrize('encoding, order', [('yuv422', 'uyvy'), ('uyvy', 'uyvy'),
+                                             ('yuv422_yuy2', 'yuyv'), ('yuyv', 'yuyv')])
+def test_yuv422_images_read_as_rgb(encoding, order) -> None:
+    rng = np.random.default_rng(1)
+    pairs = rng.integers(0, 256, (4, 3, 3), dtype=np.uint8)  # one colour per pixel pair:
+    rgb = np.repeat(pairs, 2, axis=1)  # then 4:2:2 loses nothing
+    rgb[0, :2] = (255, 255, 255)
+    rgb[0, 2:4] = 0
+    yuv = _yuv_video_range(rgb)
+    y, cb, cr = yuv[:, 0::2, 0], yuv[:, 0::2, 1], yuv[:, 0::2, 2]
+    y1 = yuv[:, 1::2, 0]
+    quads = np.stack([cb, y, cr, y1] if order == 'uyvy' else [y, cb, y1, cr], axis=-1)
+    step = 6 * 2 + 4  # rows padded by 4 bytes
+    data = np.zeros((4, step), np.uint8)
+    data[:, :12] = quads.reshape(4, 12)
+    family = rosbags_family()
+    msg = image_to_msg(family, family.header(0, 'camera'), np.zeros((4, 6, 3), np.uint8))
+    msg.encoding, msg.step, msg.data = encoding, step, data.ravel()
+    back = msg_to_image(msg)
+    assert np.abs(back.astype(int) - rgb).max() <= 2  # Y, Cb, Cr quantised to whole steps
+    assert (back[0, 0] == 255).all() and (back[0, 2] == 0).all()  # video range: 235 / 16
+    msg.width = 5  # two pixels a quad: an odd width does not fit
+    with pytest.raises(ValueError, match='do not hold it'):
+        msg_to_image(msg)
 
 
 @pytest.mark.slow

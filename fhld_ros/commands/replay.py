@@ -37,7 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--points-topic', default='/points')
     parser.add_argument('--odom-topic', default='/odom',
                         help="odometry topic; '' or a topic absent from the bag: per sweep")
-    parser.add_argument('--image-topic', default=IMAGE_TOPIC, help='--detector salad: images')
+    parser.add_argument('--image-topic', default=IMAGE_TOPIC,
+                        help='--detector salad: images (Image; CompressedImage JPEG or PNG on '
+                        'its /compressed topic where the bag has only that)')
     parser.add_argument('--camera-info-topic', default=CAMERA_INFO_TOPIC,
                         help='--detector salad: their camera_info')
     parser.add_argument('--params', type=Path, help='lane_detector parameter YAML (with '

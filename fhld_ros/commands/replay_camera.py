@@ -1,5 +1,6 @@
 """`fhld replay IN_BAG OUT_BAG --detector salad`: camera_lane_detector's pipeline over a bag's
-camera images (what `fhld simulate --camera` writes: /camera/image_raw + /camera/camera_info).
+camera images (what `fhld simulate --camera` writes: /camera/image_raw + /camera/camera_info;
+a recorded bag's JPEG or PNG images on /camera/image_raw/compressed are read as well).
 
 A thin driver of CameraPipeline, as the node is: every message in bag order, and after each one
 the detection it made due, so a replay writes what the node publishes when each message is
@@ -33,6 +34,7 @@ def replay_camera(in_bag: Path, out_bag: Path, params: CameraParams,
     inputs = {'IN_BAG': in_bag}
     check_output(out_bag, overwrite, inputs)  # before the model loads: fail fast
     counts = topic_counts(in_bag)
+    image_topic = images_in(counts, image_topic, params.image_transport, progress)
     require_topics(in_bag, counts, (image_topic, camera_info_topic))
     pipeline = CameraPipeline(params, load_camera_detector(
         params.checkpoint, params.model_threads, params.model_runtime, params.flip_average))
@@ -75,6 +77,18 @@ def feed_camera(pipeline: CameraPipeline, in_bag: Path, counts: dict[str, int],
             yield
     finally:
         bar.close()
+
+
+def images_in(counts: dict[str, int], image_topic: str, transport: str, say: bool) -> str:
+    """The topic a bag's images come from: image_topic, or its compressed one (image_transport's
+    <image_topic>/compressed) where the parameters ask for it, or where the bag has only that
+    (recorders often keep only the compressed images); said on stderr when `say`."""
+    compressed = image_topic.rstrip('/') + '/compressed'
+    if transport == 'compressed' or (not counts.get(image_topic) and counts.get(compressed)):
+        if say and transport != 'compressed':
+            print(f'images: {compressed} (the bag has no {image_topic})', file=sys.stderr)
+        return compressed
+    return image_topic
 
 
 def require_topics(in_bag: Path, counts: dict[str, int], topics: tuple[str, ...]) -> None:

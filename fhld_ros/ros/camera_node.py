@@ -19,7 +19,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallb
 from rclpy.event_handler import QoSMessageLostInfo
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from fhld_ros.lane_output import lane_messages
 from fhld_ros.ros.camera_diagnostics import CameraStats
@@ -56,14 +56,14 @@ class CameraLaneDetectorNode(Node):
         self.stats = CameraStats()
         self._create_interfaces()
         self.get_logger().info(f'camera_lane_detector ready: SALAD on '
-                               f'{self.resolve_topic_name(self.params.image_topic)}')
+                               f'{self.resolve_topic_name(self.image_input()[1])}')
 
     def _create_interfaces(self) -> None:
         p = self.params
         # images and camera_info one at a time, in arrival order
         self.inputs = MutuallyExclusiveCallbackGroup()
         # keep last 2: only the newest image counts
-        self.images = SensorInput(self, Image, p.image_topic, self.on_image, 2, self.inputs,
+        self.images = SensorInput(self, *self.image_input(), self.on_image, 2, self.inputs,
                                   self.on_lost, p.input_reliability)
         # best effort matches reliable and best-effort drivers alike; only the newest counts
         self.create_subscription(
@@ -78,6 +78,13 @@ class CameraLaneDetectorNode(Node):
                             self.images.match if p.input_reliability == 'auto' else None,
                             self.inputs)
 
+    def image_input(self) -> tuple[type, str]:
+        """The image message type and topic image_transport names (image_transport's topic
+        convention: a transport's messages on <base topic>/<transport>)."""
+        if self.params.image_transport == 'compressed':
+            return CompressedImage, self.params.image_topic.rstrip('/') + '/compressed'
+        return Image, self.params.image_topic
+
     def _drop(self, what: str, exc: Exception) -> None:
         """A message dropped (bad input) or one that failed unexpectedly: counted, warned
         about (throttled); the node goes on."""
@@ -90,7 +97,7 @@ class CameraLaneDetectorNode(Node):
         self.stats.counts['images_lost_in_dds'] += info.total_count_change
         self.stats.event('images_lost', value=info.total_count_change)
         self.get_logger().warning(
-            f'DDS lost {info.total_count} images on {self.params.image_topic} before they '
+            f'DDS lost {info.total_count} images on {self.images.topic} before they '
             'reached the node', throttle_duration_sec=WARN_THROTTLE_SEC)
 
     def on_camera_info(self, msg: CameraInfo) -> None:

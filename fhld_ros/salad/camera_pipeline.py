@@ -261,8 +261,9 @@ class CameraPipeline:
 
     def add_image(self, msg: Any) -> ImageIntake:
         """Decode and check one image; it waits for detection when due (replacing a waiting
-        one, counted as overtaken), else it is skipped. ValueError (naming the problem) for an
-        unsupported encoding, data that do not hold the image, no usable camera_info, an image
+        one, counted as overtaken), else it is skipped; msg: a sensor_msgs/Image or
+        CompressedImage. ValueError (naming the problem) for an unsupported encoding or
+        compressed format, data that do not hold the image, no usable camera_info, an image
         size other than the camera_info's, or no frame to publish in."""
         start = time.perf_counter()
         if self.camera is None:

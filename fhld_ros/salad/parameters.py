@@ -22,8 +22,12 @@ class CameraParams:
     """Every parameter of camera_lane_detector; field metadata 'doc' is the ROS descriptor."""
 
     image_topic: str = documented(
-        'camera/image_raw', 'input sensor_msgs/Image topic (rgb8, bgr8, rgba8, bgra8 or mono8; '
-        'rectified: SALAD ignores lens distortion)', length='[1, inf)')
+        'camera/image_raw', 'input sensor_msgs/Image topic (rgb8, bgr8, rgba8, bgra8, mono8, '
+        'yuv422 or yuv422_yuy2; rectified: SALAD ignores lens distortion)', length='[1, inf)')
+    image_transport: str = documented(
+        'raw', "'raw': sensor_msgs/Image on image_topic; 'compressed': "
+        'sensor_msgs/CompressedImage (JPEG, PNG) on <image_topic>/compressed, as '
+        "image_transport's compressed publisher sends it", choices=('raw', 'compressed'))
     camera_info_topic: str = documented(
         'camera/camera_info', 'input sensor_msgs/CameraInfo topic; its newest message gives '
         'the intrinsics of each image', length='[1, inf)')

@@ -1,0 +1,108 @@
+"""A user's camera driver as test_camera_node.py plays it: plain rclpy publishers in their own
+process, JPEG images through image_transport's compressed topic.
+
+    python test/camera_publisher.py --frames 8 --corrupt-after 3
+
+Publishes /camera/camera_info and /camera/image_raw/compressed (sensor_msgs/CompressedImage,
+format 'rgb8; jpeg compressed bgr8' as image_transport's compressed plugin writes it) at --hz
+on the wall clock, 960x540 images of a road with two white lines; with --corrupt-after N, one
+JPEG cut short half a frame after image N. Waits for a subscriber on both topics first. Prints
+one JSON line: the stamps (ns) of the good images published. Imports nothing from fhld_ros.
+"""
+from __future__ import annotations
+
+import argparse
+import array
+import io
+import json
+import time
+
+import rclpy
+from PIL import Image, ImageDraw
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, CompressedImage
+
+WIDTH, HEIGHT, FOCAL = 960, 540, 685.0
+
+
+def road_jpeg() -> bytes:
+    """Grey road below a sky, two white lines meeting at the horizon."""
+    image = Image.new('RGB', (WIDTH, HEIGHT), (150, 170, 200))
+    draw = ImageDraw.Draw(image)
+    horizon = HEIGHT // 2
+    draw.rectangle((0, horizon, WIDTH, HEIGHT), fill=(70, 70, 72))
+    for bottom in (150, 810):
+        draw.line((bottom, HEIGHT, WIDTH // 2 + (bottom - WIDTH // 2) // 30, horizon + 4),
+                  fill=(235, 235, 230), width=9)
+    out = io.BytesIO()
+    image.save(out, format='JPEG', quality=90)
+    return out.getvalue()
+
+
+def camera_info(stamp_ns: int) -> CameraInfo:
+    msg = CameraInfo(width=WIDTH, height=HEIGHT, distortion_model='plumb_bob')
+    msg.header.frame_id = 'camera'
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
+    cx, cy = (WIDTH - 1) / 2, (HEIGHT - 1) / 2
+    msg.k = [FOCAL, 0.0, cx, 0.0, FOCAL, cy, 0.0, 0.0, 1.0]
+    msg.p = [FOCAL, 0.0, cx, 0.0, 0.0, FOCAL, cy, 0.0, 0.0, 0.0, 1.0, 0.0]
+    msg.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+    msg.d = [0.0] * 5
+    return msg
+
+
+def compressed(stamp_ns: int, jpeg: bytes) -> CompressedImage:
+    msg = CompressedImage(format='rgb8; jpeg compressed bgr8')
+    msg.header.frame_id = 'camera'
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
+    msg.data = array.array('B', jpeg)
+    return msg
+
+
+def sleep_until(wall_ns: int) -> None:
+    delay = (wall_ns - time.time_ns()) * 1e-9
+    if delay > 0:
+        time.sleep(delay)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument('--frames', type=int, default=8)
+    parser.add_argument('--hz', type=float, default=10.0)
+    parser.add_argument('--corrupt-after', type=int, default=-1)
+    parser.add_argument('--match-timeout', type=float, default=60.0)
+    args = parser.parse_args()
+    rclpy.init()
+    node = rclpy.create_node('camera_publisher')
+    qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    info_pub = node.create_publisher(CameraInfo, 'camera/camera_info', qos)
+    image_pub = node.create_publisher(CompressedImage, 'camera/image_raw/compressed', qos)
+    deadline = time.monotonic() + args.match_timeout
+    while info_pub.get_subscription_count() < 1 or image_pub.get_subscription_count() < 1:
+        if time.monotonic() > deadline:
+            raise SystemExit('camera_publisher: the node never subscribed')
+        time.sleep(0.05)
+    time.sleep(1.0)  # both sides of the match settled
+    jpeg = road_jpeg()
+    period = int(1e9 / args.hz)
+    start = time.time_ns() + 200_000_000
+    info_pub.publish(camera_info(start - period))  # the intrinsics before the first image
+    stamps = []
+    for k in range(args.frames):
+        stamp = start + k * period
+        sleep_until(stamp)
+        info_pub.publish(camera_info(stamp))
+        image_pub.publish(compressed(stamp, jpeg))
+        stamps.append(stamp)
+        if k == args.corrupt_after:
+            sleep_until(stamp + period // 2)
+            image_pub.publish(compressed(stamp + period // 2, jpeg[:len(jpeg) // 3]))
+    time.sleep(0.5)  # reliable: the last messages delivered before the writer goes
+    print(json.dumps({'stamps': stamps}))
+    node.destroy_node()
+    rclpy.shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
