@@ -18,6 +18,7 @@ import json
 import time
 
 import rclpy
+from graph_publisher import sleep_until  # this folder: the LiDAR driver's publisher
 from PIL import Image, ImageDraw
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage
@@ -57,12 +58,6 @@ def compressed(stamp_ns: int, jpeg: bytes) -> CompressedImage:
     msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
     msg.data = array.array('B', jpeg)
     return msg
-
-
-def sleep_until(wall_ns: int) -> None:
-    delay = (wall_ns - time.time_ns()) * 1e-9
-    if delay > 0:
-        time.sleep(delay)
 
 
 def main() -> int:
