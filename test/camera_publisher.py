@@ -1,13 +1,15 @@
-"""A user's camera driver as test_camera_node.py plays it: plain rclpy publishers in their own
-process, JPEG images through image_transport's compressed topic.
+"""A user's camera driver as test_camera_graph.py plays it: plain rclpy publishers in their own
+process.
 
-    python test/camera_publisher.py --frames 8 --corrupt-after 3
+    python test/camera_publisher.py --frames 20 --corrupt-after 5             # rgb8 Images
+    python test/camera_publisher.py --frames 20 --corrupt-after 5 --jpeg      # JPEGs
 
-Publishes /camera/camera_info and /camera/image_raw/compressed (sensor_msgs/CompressedImage,
-format 'rgb8; jpeg compressed bgr8' as image_transport's compressed plugin writes it) at --hz
-on the wall clock, 960x540 images of a road with two white lines; with --corrupt-after N, one
-JPEG cut short half a frame after image N. Waits for a subscriber on both topics first. Prints
-one JSON line: the stamps (ns) of the good images published. Imports nothing from fhld_ros.
+Publishes /camera/camera_info and either /camera/image_raw (sensor_msgs/Image, rgb8: 1.5 MB a
+message) or, with --jpeg, /camera/image_raw/compressed (sensor_msgs/CompressedImage, format
+'rgb8; jpeg compressed bgr8' as image_transport's compressed plugin writes it) at --hz on the
+wall clock: 960x540 images of a road with two white lines. With --corrupt-after N, one image
+cut short half a frame after image N. Waits for a subscriber on both topics first. Prints one
+JSON line: the stamps (ns) of the good images published. Imports nothing from fhld_ros.
 """
 from __future__ import annotations
 
@@ -19,25 +21,24 @@ import time
 
 import rclpy
 from graph_publisher import sleep_until  # this folder: the LiDAR driver's publisher
-from PIL import Image, ImageDraw
+from PIL import Image as PilImage
+from PIL import ImageDraw
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CameraInfo, CompressedImage
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 WIDTH, HEIGHT, FOCAL = 960, 540, 685.0
 
 
-def road_jpeg() -> bytes:
+def road() -> PilImage.Image:
     """Grey road below a sky, two white lines meeting at the horizon."""
-    image = Image.new('RGB', (WIDTH, HEIGHT), (150, 170, 200))
+    image = PilImage.new('RGB', (WIDTH, HEIGHT), (150, 170, 200))
     draw = ImageDraw.Draw(image)
     horizon = HEIGHT // 2
     draw.rectangle((0, horizon, WIDTH, HEIGHT), fill=(70, 70, 72))
     for bottom in (150, 810):
         draw.line((bottom, HEIGHT, WIDTH // 2 + (bottom - WIDTH // 2) // 30, horizon + 4),
                   fill=(235, 235, 230), width=9)
-    out = io.BytesIO()
-    image.save(out, format='JPEG', quality=90)
-    return out.getvalue()
+    return image
 
 
 def camera_info(stamp_ns: int) -> CameraInfo:
@@ -52,11 +53,22 @@ def camera_info(stamp_ns: int) -> CameraInfo:
     return msg
 
 
-def compressed(stamp_ns: int, jpeg: bytes) -> CompressedImage:
-    msg = CompressedImage(format='rgb8; jpeg compressed bgr8')
+def image_message(stamp_ns: int, image: PilImage.Image, jpeg: bool) -> Image | CompressedImage:
+    if jpeg:
+        out = io.BytesIO()
+        image.save(out, format='JPEG', quality=90)
+        msg = CompressedImage(format='rgb8; jpeg compressed bgr8')
+        msg.data = array.array('B', out.getvalue())
+    else:
+        msg = Image(height=HEIGHT, width=WIDTH, encoding='rgb8', step=3 * WIDTH)
+        msg.data = array.array('B', image.tobytes())
     msg.header.frame_id = 'camera'
     msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
-    msg.data = array.array('B', jpeg)
+    return msg
+
+
+def cut_short(msg: Image | CompressedImage) -> Image | CompressedImage:
+    msg.data = msg.data[:len(msg.data) // 3]
     return msg
 
 
@@ -65,20 +77,22 @@ def main() -> int:
     parser.add_argument('--frames', type=int, default=8)
     parser.add_argument('--hz', type=float, default=10.0)
     parser.add_argument('--corrupt-after', type=int, default=-1)
+    parser.add_argument('--jpeg', action='store_true', help='CompressedImage JPEGs')
     parser.add_argument('--match-timeout', type=float, default=60.0)
     args = parser.parse_args()
     rclpy.init()
     node = rclpy.create_node('camera_publisher')
     qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
     info_pub = node.create_publisher(CameraInfo, 'camera/camera_info', qos)
-    image_pub = node.create_publisher(CompressedImage, 'camera/image_raw/compressed', qos)
+    image_pub = (node.create_publisher(CompressedImage, 'camera/image_raw/compressed', qos)
+                 if args.jpeg else node.create_publisher(Image, 'camera/image_raw', qos))
     deadline = time.monotonic() + args.match_timeout
     while info_pub.get_subscription_count() < 1 or image_pub.get_subscription_count() < 1:
         if time.monotonic() > deadline:
             raise SystemExit('camera_publisher: the node never subscribed')
         time.sleep(0.05)
     time.sleep(1.0)  # both sides of the match settled
-    jpeg = road_jpeg()
+    image = road()
     period = int(1e9 / args.hz)
     start = time.time_ns() + 200_000_000
     info_pub.publish(camera_info(start - period))  # the intrinsics before the first image
@@ -87,11 +101,11 @@ def main() -> int:
         stamp = start + k * period
         sleep_until(stamp)
         info_pub.publish(camera_info(stamp))
-        image_pub.publish(compressed(stamp, jpeg))
+        image_pub.publish(image_message(stamp, image, args.jpeg))
         stamps.append(stamp)
         if k == args.corrupt_after:
             sleep_until(stamp + period // 2)
-            image_pub.publish(compressed(stamp + period // 2, jpeg[:len(jpeg) // 3]))
+            image_pub.publish(cut_short(image_message(stamp + period // 2, image, args.jpeg)))
     time.sleep(0.5)  # reliable: the last messages delivered before the writer goes
     print(json.dumps({'stamps': stamps}))
     node.destroy_node()

@@ -3,6 +3,7 @@ and compare its lane messages with the replay's."""
 from __future__ import annotations
 
 import pathlib
+import subprocess
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
@@ -28,6 +29,17 @@ def wait_until(predicate: Callable[[], object], timeout: float, period: float = 
             return True
         time.sleep(period)
     return bool(predicate())
+
+
+def stop(process: subprocess.Popen, timeout: float = 20) -> None:
+    """A node process stopped as Ctrl-C's SIGTERM stops it; killed when it hangs."""
+    if process.poll() is None:
+        process.terminate()
+    try:
+        process.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
 
 
 def spin_in_background(node: rclpy.node.Node) -> tuple[SingleThreadedExecutor, threading.Thread]:

@@ -5,13 +5,13 @@ simulate --camera`) re-recorded with one malformed image and one uncalibrated ca
 message at a time, each once it has handled the last, so that it computes what a replay
 computes: the /lanes contract, byte for byte the replay's messages, the bad messages dropped and
 counted while the node goes on. The weights are an untrained SALAD whose lane logit is pushed
-up, so that it decodes a lane in every image (the shipped salad.pt is not needed). The pipeline
+up, so that it decodes a lane in every image (model_fixtures.lane_everywhere_salad; the shipped
+salad.pt is not needed). The pipeline
 itself (frames, ego lanes, outline, rate, refusals) is checked without DDS on a fake detector.
 """
 from __future__ import annotations
 
 import dataclasses
-import json
 import subprocess
 import sys
 from pathlib import Path
@@ -20,22 +20,21 @@ import numpy as np
 import pytest
 import rclpy
 import torch
+from model_fixtures import lane_everywhere_salad
 from rclpy.parameter import Parameter
-from ros_helpers import RawLaneOutputs, feed, settled, spinning, wait_until
+from ros_helpers import RawLaneOutputs, feed, spinning, wait_until
 from sensor_msgs.msg import CameraInfo, Image
 
 from fhld_ros.bagio import BagWriter, read_raw
 from fhld_ros.commands.replay_camera import CAMERA_INFO_TOPIC, IMAGE_TOPIC, replay_camera
 from fhld_ros.lane_output import LANE_TOPICS
 from fhld_ros.salad.camera_pipeline import OPTICAL_TO_FLU, CameraPipeline
-from fhld_ros.salad.checkpoint import save_salad
 from fhld_ros.salad.config import SaladConfig
-from fhld_ros.salad.model import SaladNet
 from fhld_ros.salad.parameters import CameraParams
 from fhld_ros.salad.road_plane import RoadPlane
 from msg_adapters.camera import camera_info_msg, compressed_image_msg, image_to_msg, msg_to_image
 from msg_adapters.family import rosbags_family
-from msg_adapters.lanes import DELETEALL, LINE_STRIP, marker_array_stamp_ns
+from msg_adapters.lanes import DELETEALL, LINE_STRIP
 from msg_adapters.odometry import euler_to_matrix
 
 pytestmark = [pytest.mark.ros]
@@ -45,19 +44,6 @@ MALFORMED_AFTER = 2  # a truncated image after this one
 UNCALIBRATED_AFTER = 3  # a camera_info with K all zero after this image
 K = np.array([[685.0, 0.0, 479.5], [0.0, 685.0, 269.5], [0.0, 0.0, 1.0]])
 FAMILY = rosbags_family()
-
-
-def _checkpoint(path: Path) -> Path:
-    cfg = SaladConfig()
-    rows = cfg.grid[1]
-    cfg = dataclasses.replace(cfg, row_shift=tuple(np.linspace(60.0, 3.0, rows)),
-                              row_scale=tuple(np.linspace(10.0, 0.5, rows)))
-    torch.manual_seed(0)
-    model = SaladNet(cfg)
-    with torch.no_grad():
-        model.seg_head.bias.fill_(5.0)  # every cell a lane cell: one lane straight ahead
-    save_salad(path, model, 'test_camera_node')
-    return path
 
 
 def _user_bag(sim: Path, out: Path) -> None:
@@ -90,7 +76,7 @@ def drive(tmp_path_factory) -> tuple[Path, Path]:
                            '960x540', '--quiet'], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     _user_bag(root / 'sim', root / 'user')
-    return root / 'user', _checkpoint(root / 'salad.pt')
+    return root / 'user', lane_everywhere_salad(root / 'salad.pt')
 
 
 class Probe(RawLaneOutputs):
@@ -193,34 +179,6 @@ def test_replay_reads_a_bags_compressed_images(drive, tmp_path):
         lanes = [[raw for *_, raw in read_raw(tmp_path / f'{name}_lanes', ['/lanes' + suffix])]
                  for name in ('raw', 'compressed')]
         assert lanes[0] == lanes[1] and len(lanes[0]) == IMAGES
-
-
-@pytest.mark.slow
-def test_jpeg_images_from_a_separate_driver_process(drive, ros_env, rclpy_context,
-                                                    one_torch_thread):
-    """image_transport:=compressed: a driver's JPEG stream at 10 Hz, one image cut short."""
-    from fhld_ros.ros.camera_node import CameraLaneDetectorNode
-    _, checkpoint = drive
-    node = CameraLaneDetectorNode(context=rclpy_context, parameter_overrides=[
-        Parameter('checkpoint', value=str(checkpoint)),
-        Parameter('image_transport', value='compressed')])
-    probe = RawLaneOutputs(rclpy_context, 'jpeg_probe')
-    probe.start()
-    with spinning(node, probe):
-        done = subprocess.run([sys.executable, str(Path(__file__).parent / 'camera_publisher.py'),
-                               '--frames', '8', '--corrupt-after', '3'],
-                              env=ros_env, capture_output=True, text=True, timeout=120)
-        assert done.returncode == 0, done.stderr
-        stamps = json.loads(done.stdout.splitlines()[-1])['stamps']
-        c = node.pipeline.counters
-        assert wait_until(lambda: c['images'] + c['bad_images'] == len(stamps) + 1
-                          and settled(node, probe), 30), dict(c)
-        assert c['bad_images'] == 1 and 'does not decode' in node.stats.last_error
-        # every good image detected or overtaken by a newer one (the newest wins)
-        assert c['images'] == c['detections'] + c['images_overtaken'] == len(stamps)
-        detected = [marker_array_stamp_ns(raw) for raw in probe.got['']]
-        assert set(detected) <= set(stamps) and detected[-1] == stamps[-1]
-        assert all(_check_contract(raw, 'camera') >= 1 for raw in probe.got[''])
 
 
 def _node_error(*ros_args: str) -> subprocess.CompletedProcess:

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-from ros_helpers import NodeOutputs, wait_until
+from ros_helpers import NodeOutputs, stop, wait_until
 
 from fhld_ros.ros.env import loopback_dds_env
 from msg_adapters.lanes import marker_array_to_lanes
@@ -64,13 +64,7 @@ def node_process(graph_env):
          '-p', 'detector:=classical', '-p', f'size_px:={SIZE_PX}', '-p', 'resolution_m:=0.1'],
         env=graph_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     yield node
-    if node.poll() is None:
-        node.terminate()
-    try:
-        node.wait(timeout=20)
-    except subprocess.TimeoutExpired:
-        node.kill()
-        node.wait()
+    stop(node)
 
 
 def _run_publisher(graph: Graph, env: dict[str, str]) -> list[int]:
