@@ -4,8 +4,8 @@ Each section is a function ``() -> dict[str, float]`` in bench_stages.py (bench_
 node end to end, bench_camera.py for SALAD, the camera detector, and its node), registered in
 SECTIONS as 'module:function' and imported only when it runs.
 ``fhld bench --json`` merges all sections into one flat JSON object; ``fhld bench adapters``
-runs one. Only e2e takes an argument: ``--dds`` picks the DDS transports it measures the node
-over (default both, its keys named e2e_project_* and e2e_default_*).
+runs one. ``--dds`` picks the DDS transports e2e and camera_live measure their node over
+(default both, their keys named e2e_project_*, e2e_default_*, camera_live_project_*, ...).
 """
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ SECTIONS: dict[str, str] = {
     'camera': 'fhld_ros.commands.bench_camera:bench_camera',
     'camera_live': 'fhld_ros.commands.bench_camera:bench_camera_live',
 }
-# --dds -> the transports of fhld_ros.ros.env.PROFILES that the e2e section runs, in order
+# --dds -> the transports of fhld_ros.ros.env.PROFILES that e2e and camera_live run, in order
 DDS_CHOICES: dict[str, tuple[str, ...]] = {
     'project': ('project',), 'default': ('default',), 'both': ('project', 'default')}
 
@@ -39,10 +39,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f'sections to run (default: all): {", ".join(SECTIONS)}')
     parser.add_argument('--json', action='store_true', help='print one JSON object last')
     parser.add_argument('--dds', choices=list(DDS_CHOICES), default='both',
-                        help="e2e's DDS transport (default: both, one after the other): "
-                        "'project' is config/fastdds_loopback.xml (32 MB shared-memory "
-                        "segments), 'default' is Fast DDS's default 512 kB shared-memory "
-                        'segment, where a 3 MB cloud travels in fragments')
+                        help="e2e's and camera_live's DDS transport (default: both, one after "
+                        "the other): 'project' is config/fastdds_loopback.xml (32 MB "
+                        "shared-memory segments), 'default' is Fast DDS's default 512 kB "
+                        'shared-memory segment, where a 3 MB cloud or a 1.5 MB image travels '
+                        'in fragments')
 
 
 def run(args: argparse.Namespace) -> int:
@@ -54,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     results: dict[str, object] = {'machine': machine, 'cpu_threads': os.cpu_count()}
     for name in args.sections or list(SECTIONS):
         module_name, func_name = SECTIONS[name].split(':')
-        kwargs = {'dds': DDS_CHOICES[args.dds]} if name == 'e2e' else {}
+        kwargs = {'dds': DDS_CHOICES[args.dds]} if name in ('e2e', 'camera_live') else {}
         section = getattr(importlib.import_module(module_name), func_name)(**kwargs)
         if not args.json:
             print(f'[{name}]')

@@ -6,17 +6,22 @@ node's default model_threads and model_runtime, and flip_average as
 FHLD_BENCH_CAMERA_FLIP_AVERAGE says (default 1, the node's default; 0: one pass):
 camera_warp_ms (resampling to the virtual camera), camera_model_ms (the network as served, on
 the image and its mirror with flip_average; camera_model_eager_ms: the same network in eager
-torch), camera_decode_ms (maps -> 3D lanes, on the maps of the image's own ground-truth lanes,
-so it costs what a real detection of them costs whatever the weights; camera_decode_network_ms
+torch), camera_jpeg_decode_ms (a CompressedImage JPEG of the image, quality 90, to pixels: what
+image_transport:=compressed adds), camera_decode_ms (maps -> 3D lanes, on the maps of the
+image's own ground-truth lanes, so it costs what a real detection of them costs whatever the
+weights; camera_decode_network_ms
 on the network's own maps, whose stray cells make more points), and camera_e2e_ms_p50 /
 _p95: image message in -> the three /lanes messages out through CameraPipeline (decode,
 checks, SALAD, frames, ids, outline, serialisation).
 
-camera_live: the node as its own process over DDS (loopback, the project's profile) with its
-default parameters (flip_average as above), fed one camera_info, then images and camera_info
-at 10 Hz on the wall clock for FHLD_BENCH_CAMERA_SECONDS (default 20): latency = /lanes
-arrival - image publish, an image whose stamp never comes back on /lanes is dropped, and the
-node's own counters (overtaken, lost by DDS) and stage medians from its /diagnostics.
+camera_live: the node as its own process over DDS (loopback) with its default parameters
+(flip_average as above), fed one camera_info, then rgb8 images (1.5 MB) and camera_info at 10
+Hz on the wall clock for FHLD_BENCH_CAMERA_SECONDS (default 20): latency = /lanes arrival -
+image publish, an image whose stamp never comes back on /lanes is dropped, and the node's own
+counters (overtaken, lost by DDS) and stage medians from its /diagnostics. On each transport
+`dds` names, in a bench process of its own as e2e's (bench_e2e.transport_child): 'project'
+(config/fastdds_loopback.xml) and 'default' (Fast DDS's 512 kB segment: an image travels in
+fragments); keys camera_live_project_*, camera_live_default_*.
 
 Both use the shipped fhld_ros/checkpoints/salad.pt; where it is absent an untrained model of
 the shipped config (SaladConfig's defaults, row statistics of the bench image) stands in, and
@@ -25,7 +30,9 @@ a model finds no lanes, so its camera_e2e_ms decodes none (camera_decode_ms has 
 """
 from __future__ import annotations
 
+import argparse
 import dataclasses
+import json
 import os
 import statistics
 import subprocess
@@ -39,6 +46,7 @@ import torch
 
 from fhld_ros.commands.bench_stages import time_median
 from fhld_ros.lane_output import lane_messages
+from fhld_ros.ros.env import PROFILES, loopback_dds_env
 from fhld_ros.salad.camera_pipeline import CameraPipeline, load_camera_detector
 from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT, save_salad
 from fhld_ros.salad.config import SaladConfig
@@ -48,7 +56,12 @@ from fhld_ros.salad.parameters import CameraParams
 from fhld_ros.salad.sample import CameraLaneSample
 from fhld_ros.salad.sim_source import simulated_samples
 from fhld_ros.salad.targets import lane_targets, row_statistics
-from msg_adapters.camera import camera_info_msg, image_to_msg
+from msg_adapters.camera import (
+    camera_info_msg,
+    compressed_image_msg,
+    image_to_msg,
+    msg_to_image,
+)
 from msg_adapters.family import rosbags_family
 
 BENCH_SEED = 4_000_123  # a held-out SALAD seed (sim_source.salad_seeds('test') starts at 4e6)
@@ -116,6 +129,8 @@ def _bench_camera(sample: CameraLaneSample) -> dict[str, float | str]:
     maps = detector.maps(image, k)
     eager_ms = time_median(eager, repeats=REPEATS, warmup=3)
     family = rosbags_family()
+    jpeg = compressed_image_msg(family, family.header(0, 'camera'), image, 'jpeg')
+    jpeg_ms = time_median(lambda: msg_to_image(jpeg), repeats=REPEATS)
     pipeline = CameraPipeline(CameraParams(flip_average=FLIP_AVERAGE), detector)
     pipeline.receive_camera_info(camera_info_msg(family, family.header(0, 'camera'), *SIZE, k))
     msg = image_to_msg(family, family.header(0, 'camera'), image)
@@ -134,7 +149,7 @@ def _bench_camera(sample: CameraLaneSample) -> dict[str, float | str]:
             'camera_model_runtime': type(detector.network).__name__,
             'camera_flip_average': float(FLIP_AVERAGE),
             'camera_warp_ms': warp_ms, 'camera_model_ms': model_ms,
-            'camera_model_eager_ms': eager_ms,
+            'camera_model_eager_ms': eager_ms, 'camera_jpeg_decode_ms': jpeg_ms,
             'camera_decode_ms': _decode_ms(sample, cfg),
             'camera_decode_network_ms': time_median(lambda: decode(*maps, cfg), repeats=REPEATS),
             'camera_decode_lanes': float(len(sample.lanes)),
@@ -177,12 +192,23 @@ class _LiveClient:
             self.image.publish(self.image_msg)
         return published
 
-def bench_camera_live(seconds: float = SECONDS) -> dict[str, float | str]:
+def bench_camera_live(seconds: float = SECONDS,
+                      dds: str | tuple[str, ...] = ('project', 'default')
+                      ) -> dict[str, float | str]:
     """`fhld bench camera_live`: see the module doc."""
-    import rclpy
+    from fhld_ros.commands.bench_e2e import transport_child, transports  # rclpy: only here
+    results: dict[str, float | str] = {}
+    for name in transports(dds):
+        summary = transport_child('fhld_ros.commands.bench_camera', seconds, name)
+        results.update({f'camera_live_{name}_{k.removeprefix("camera_live_")}': v
+                        for k, v in summary.items()})
+    return results
 
-    from fhld_ros.ros.env import loopback_dds_env
-    os.environ.update(loopback_dds_env())  # before rclpy.init and the node read it
+
+def _measure_live(seconds: float, dds: str) -> dict[str, float | str]:
+    """One transport in this process: the node as a child process, images, /lanes timed."""
+    import rclpy
+    os.environ.update(loopback_dds_env(dds=dds))  # before rclpy.init and the node read it
     sample = _sample()
     with tempfile.TemporaryDirectory() as folder:
         checkpoint, weights = _weights(sample, Path(folder))
@@ -218,3 +244,12 @@ def bench_camera_live(seconds: float = SECONDS) -> dict[str, float | str]:
                if k.startswith(('stage_', 'latency_ms_'))},
             **{f'camera_live_node_{k}': float(client.ros.diag.get(k, 0.0))
                for k in NODE_COUNTERS}}
+
+
+if __name__ == '__main__':
+    parser = argparse.ArgumentParser(description='one transport of `fhld bench camera_live`: '
+                                     'its summary as one JSON line last on stdout')
+    parser.add_argument('--dds', choices=list(PROFILES), default='project')
+    parser.add_argument('--seconds', type=float, default=SECONDS)
+    cli = parser.parse_args()
+    print(json.dumps(_measure_live(cli.seconds, cli.dds)), flush=True)

@@ -214,16 +214,17 @@ def _transport_keys(dds: str, summary: dict[str, float]) -> dict[str, float]:
     return {f'e2e_{dds}_{k.removeprefix("e2e_")}': v for k, v in summary.items()}
 
 
-def _run_child(seconds: float, dds: str) -> dict[str, float]:
-    """_measure(seconds, dds) in a child process with that transport's DDS profile."""
-    # (the child confines itself to loopback on a fresh domain: _measure)
-    env = dict(os.environ, FHLD_BENCH_E2E_PARAMS=' '.join(PARAMS))
-    # its own session: on a timeout the child and the node it started go together
+def transport_child(module: str, seconds: float, dds: str,
+                    env: dict[str, str] | None = None) -> dict[str, float]:
+    """`python -m <module> --dds <dds> --seconds <seconds>`: one transport of a live bench in its
+    own process (Fast DDS reads its profile once per process) and session, so that on a timeout
+    it and the node it started go together; its summary, the last line of its stdout (JSON).
+    RuntimeError with the tail of its stderr when it fails."""
+    # (the child confines itself to loopback on a fresh domain: loopback_dds_env)
     child = subprocess.Popen(
-        [sys.executable, '-m', 'fhld_ros.commands.bench_e2e', '--dds', dds,
-         '--seconds', str(seconds)],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        start_new_session=True)
+        [sys.executable, '-m', module, '--dds', dds, '--seconds', str(seconds)],
+        env=dict(os.environ) if env is None else env, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
         out, err = child.communicate(timeout=seconds + CHILD_SLACK_SEC)
     except subprocess.TimeoutExpired:
@@ -233,22 +234,29 @@ def _run_child(seconds: float, dds: str) -> dict[str, float]:
     lines = out.strip().splitlines()
     if child.returncode != 0 or not lines:
         tail = '\n'.join(err.strip().splitlines()[-20:])
-        raise RuntimeError(f'bench e2e over the {dds!r} transport failed '
+        raise RuntimeError(f'{module} over the {dds!r} transport failed '
                            f'(exit {child.returncode}):\n{tail}')
-    return _transport_keys(dds, json.loads(lines[-1]))
+    return json.loads(lines[-1])
 
 
-def bench_e2e(seconds: float = SECONDS,
-              dds: tuple[str, ...] = ('project', 'default')) -> dict[str, float]:
-    """The node end to end over each transport in `dds`, one after the other."""
+def transports(dds: str | tuple[str, ...]) -> tuple[str, ...]:
+    """`dds` as a tuple of PROFILES names; ValueError naming an unknown one."""
     dds = (dds,) if isinstance(dds, str) else tuple(dds)
     unknown = [name for name in dds if name not in PROFILES]
     if unknown:
         raise ValueError(f'unknown DDS transport {", ".join(unknown)} '
                          f'(choose from {", ".join(PROFILES)})')
+    return dds
+
+
+def bench_e2e(seconds: float = SECONDS,
+              dds: tuple[str, ...] = ('project', 'default')) -> dict[str, float]:
+    """The node end to end over each transport in `dds`, one after the other."""
     results: dict[str, float] = {}
-    for name in dds:
-        results.update(_run_child(seconds, name))
+    env = dict(os.environ, FHLD_BENCH_E2E_PARAMS=' '.join(PARAMS))
+    for name in transports(dds):
+        results.update(_transport_keys(name, transport_child(
+            'fhld_ros.commands.bench_e2e', seconds, name, env)))
     return results
 
 
