@@ -30,9 +30,7 @@ a model finds no lanes, so its camera_e2e_ms decodes none (camera_decode_ms has 
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import json
 import os
 import statistics
 import subprocess
@@ -46,7 +44,7 @@ import torch
 
 from fhld_ros.commands.bench_stages import time_median
 from fhld_ros.lane_output import lane_messages
-from fhld_ros.ros.env import PROFILES, loopback_dds_env
+from fhld_ros.ros.env import loopback_dds_env
 from fhld_ros.salad.camera_pipeline import CameraPipeline, load_camera_detector
 from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT, save_salad
 from fhld_ros.salad.config import SaladConfig
@@ -247,9 +245,5 @@ def _measure_live(seconds: float, dds: str) -> dict[str, float | str]:
 
 
 if __name__ == '__main__':
-    parser = argparse.ArgumentParser(description='one transport of `fhld bench camera_live`: '
-                                     'its summary as one JSON line last on stdout')
-    parser.add_argument('--dds', choices=list(PROFILES), default='project')
-    parser.add_argument('--seconds', type=float, default=SECONDS)
-    cli = parser.parse_args()
-    print(json.dumps(_measure_live(cli.seconds, cli.dds)), flush=True)
+    from fhld_ros.commands.bench_e2e import transport_main
+    transport_main('camera_live', _measure_live, SECONDS)

@@ -26,6 +26,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 import rclpy
@@ -260,10 +261,17 @@ def bench_e2e(seconds: float = SECONDS,
     return results
 
 
-if __name__ == '__main__':
-    parser = argparse.ArgumentParser(description='one transport of `fhld bench e2e`: its '
-                                     'summary as one JSON line last on stdout')
+def transport_main(section: str, measure: Callable[[float, str], dict],
+                   seconds: float) -> None:
+    """The command line of transport_child's process: `measure(seconds, dds)` printed as one
+    JSON line last on stdout."""
+    parser = argparse.ArgumentParser(description=f'one transport of `fhld bench {section}`: '
+                                     'its summary as one JSON line last on stdout')
     parser.add_argument('--dds', choices=list(PROFILES), default='project')
-    parser.add_argument('--seconds', type=float, default=SECONDS)
+    parser.add_argument('--seconds', type=float, default=seconds)
     cli = parser.parse_args()
-    print(json.dumps(_measure(cli.seconds, cli.dds)), flush=True)
+    print(json.dumps(measure(cli.seconds, cli.dds)), flush=True)
+
+
+if __name__ == '__main__':
+    transport_main('e2e', _measure, SECONDS)
