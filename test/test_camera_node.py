@@ -209,10 +209,12 @@ class RoadDetector:
 
     def __init__(self) -> None:
         self.roads: list[RoadPlane | None] = []
+        self.distortions: list[np.ndarray | None] = []
 
-    def __call__(self, image: np.ndarray, k: np.ndarray, road: RoadPlane | None = None
-                 ) -> tuple[list[np.ndarray], np.ndarray]:
+    def __call__(self, image: np.ndarray, k: np.ndarray, road: RoadPlane | None = None,
+                 distortion: np.ndarray | None = None) -> tuple[list[np.ndarray], np.ndarray]:
         self.roads.append(road)
+        self.distortions.append(distortion)
         z = np.linspace(4.0, 50.0, 47)
         return ([np.column_stack([np.full_like(z, x), np.full_like(z, 1.5), z])
                  for x in (-5.25, -1.75, 1.75, 5.25)], np.array([0.9, 0.8, 0.7, 0.3]))
@@ -223,8 +225,20 @@ def _image(stamp_ns: int, width: int = 960, height: int = 540, frame: str = 'cam
                         np.zeros((height, width, 3), np.uint8))
 
 
-def _info(k: np.ndarray = K, width: int = 960, height: int = 540):
-    return camera_info_msg(FAMILY, FAMILY.header(0, 'camera'), width, height, k)
+def _info(k: np.ndarray = K, width: int = 960, height: int = 540,
+          d: np.ndarray | None = None):
+    return camera_info_msg(FAMILY, FAMILY.header(0, 'camera'), width, height, k, d)
+
+
+def test_a_distorted_camera_s_distortion_reaches_the_detector():
+    pipeline = CameraPipeline(CameraParams(), RoadDetector())
+    d = np.array([-0.108, 0.139, -0.0038, -0.0048, 0.0])  # the PJLab camera's
+    for info in (_info(), _info(d=d)):
+        assert pipeline.receive_camera_info(info) is None
+        assert pipeline.receive_image(_image(len(pipeline.detector.distortions) * 10**8)).due
+        assert pipeline.detect() is not None
+    undistorted, distorted = pipeline.detector.distortions
+    assert undistorted is None and np.array_equal(distorted, d)
 
 
 def test_lanes_come_out_in_the_output_frame_with_ego_lanes_and_the_seen_ground():
@@ -293,8 +307,8 @@ def test_a_mount_beyond_the_trained_heights_is_warned_about(detector, height, ad
 class NoLanes(RoadDetector):
     """Finds no lane."""
 
-    def __call__(self, image: np.ndarray, k: np.ndarray, road: RoadPlane | None = None
-                 ) -> tuple[list[np.ndarray], np.ndarray]:
+    def __call__(self, image: np.ndarray, k: np.ndarray, road: RoadPlane | None = None,
+                 distortion: np.ndarray | None = None) -> tuple[list[np.ndarray], np.ndarray]:
         return [], np.zeros(0)
 
 

@@ -11,6 +11,7 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
+from fhld_ros.camera.calibration import CameraCalibration
 from fhld_ros.errors import ConfigError
 from fhld_ros.salad.augment import SaladAugment, augment_images, draw, flip
 from fhld_ros.salad.checkpoint import SaladCheckpointError, load_salad, save_salad
@@ -56,6 +57,28 @@ def test_a_point_lands_where_the_virtual_camera_sees_it_whatever_the_source_came
         warped = CAMERA.warp(_dot(size, _project(k, point), sigma=0.01 * k[0, 0]), k)
         assert warped.shape == (CAMERA.height, CAMERA.width, 3)
         np.testing.assert_allclose(_peak(warped), _project(CAMERA.intrinsics, point), atol=0.5)
+
+
+def test_a_distorted_camera_s_point_lands_where_a_pinhole_virtual_camera_sees_it():
+    """plumb_bob distortion removed in the warp: points seen through a barrel lens (drawn where
+    the distortion puts them) land where the virtual pinhole camera sees them."""
+    k = np.array([[1050.0, 0, 955], [0, 1040, 580], [0, 0, 1]])
+    size = (1920, 1200)
+    for d in (np.array([-0.108, 0.139, -0.0038, -0.0048, 0.0]),  # the PJLab camera's
+              np.array([-0.30, 0.10, 0.0, 0.0])):  # a wide lens's, k1 k2 p1 p2 only
+        calib = CameraCalibration(*size, k, np.append(d, np.zeros(5))[:5], np.eye(4))
+        for point in ([-2.0, 1.5, 10.0], [3.0, 1.5, 6.0], [0.5, 1.2, 30.0]):
+            uv, _, inside = calib.project_camera(np.array([point]))
+            assert inside[0]
+            image = _dot(size, uv[0], sigma=0.01 * k[0, 0])
+            want = _project(CAMERA.intrinsics, np.array(point))
+            np.testing.assert_allclose(_peak(CAMERA.warp(image, k, d)), want, atol=0.1)
+            if point[0] == 3.0:  # 30 deg off the axis: ignoring the lens misses it
+                assert np.abs(_peak(CAMERA.warp(image, k)) - want).max() > 2.0
+    # beyond a narrow lens's image the virtual camera sees black, as without distortion
+    dark = CAMERA.warp(np.full((200, 320, 3), 255, np.uint8), np.array(
+        [[600.0, 0, 160], [0, 600, 100], [0, 0, 1]]), np.array([-0.2, 0.05, 0, 0, 0]))
+    assert dark[0, 0].max() == 0 and dark[CAMERA.height // 2, CAMERA.width // 2].min() == 255
 
 
 def test_flip_and_zoom_move_the_image_and_the_3d_lane_alike():
@@ -267,7 +290,7 @@ def test_the_error_by_range_is_where_the_lanes_are_off():
     gt = _road()
     off_far = [lane + np.where(lane[:, 2:] > 40.0, [0.4, 0.0, 0.0], 0.0) for lane in gt]
     image = np.zeros((CAMERA.height, CAMERA.width, 3), dtype=np.uint8)
-    rows = score(lambda image, k, road=None: (off_far, np.ones(4)),
+    rows = score(lambda image, k, road=None, distortion=None: (off_far, np.ones(4)),
                  [CameraLaneSample(image, CAMERA.intrinsics, gt, 'shifted')])
     by_range = rows['by_range']
     assert [by_range[b]['median_m'] for b in ('0-10m', '10-20m', '20-30m', '30-40m')] == \
@@ -358,7 +381,8 @@ def test_salad_real_scores_each_image_against_its_own_lifted_labels(tmp_path, ca
     (nuscenes / 'calib.json').write_text(json.dumps(
         {'cams': {'CAM_FRONT': {'cam2img': [row + [0.0] for row in k] + [[0, 0, 0, 1.0]]}}}))
     (pjlab / 'center_camera-intrinsic.json').write_text(json.dumps(
-        {'center_camera-intrinsic': {'param': {'cam_K': {'data': k}}}}))
+        {'center_camera-intrinsic': {'param': {'cam_K': {'data': k}, 'cam_dist': {
+            'data': [[-0.1, 0.1, 0.0, 0.0]]}}}}))
     line = [[0.0, 1.5, 6.0], [0.0, 1.5, 16.0]]
     gts = {}
     for name, lanes in (('nus', [line, line]), ('pj', [line])):

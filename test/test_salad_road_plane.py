@@ -90,8 +90,8 @@ class _Recorder:
     def __init__(self) -> None:
         self.roads: list[RoadPlane | None] = []
 
-    def __call__(self, image: np.ndarray, k: np.ndarray, road: RoadPlane | None = None
-                 ) -> tuple[list[np.ndarray], np.ndarray]:
+    def __call__(self, image: np.ndarray, k: np.ndarray, road: RoadPlane | None = None,
+                 distortion: np.ndarray | None = None) -> tuple[list[np.ndarray], np.ndarray]:
         self.roads.append(road)
         return [], np.zeros(0)
 

@@ -51,14 +51,10 @@ class CameraCalibration:
         ahead = depth > MIN_DEPTH_M
         safe = np.where(ahead, depth, 1.0)
         x, y = cam[:, 0] / safe, cam[:, 1] / safe
-        k1, k2, p1, p2, k3 = self.D
         if np.any(self.D):
-            r2 = x * x + y * y
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            x, y = (x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
-                    y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)
             # far outside the field of view the polynomial folds back into the image
-            ahead &= r2 < 4.0 * self.max_r2
+            ahead &= x * x + y * y < 4.0 * self.max_r2
+            x, y = distort(x, y, self.D)
         K = self.K
         uv = np.stack([K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]], axis=1)
         inside = ahead & (uv[:, 0] >= 0) & (uv[:, 0] < self.width) & (uv[:, 1] >= 0) & \
@@ -161,6 +157,16 @@ class CameraCalibration:
             raise ConfigError(f'/camera/camera_info: {exc}') from exc
         return cls(int(width), int(height), np.asarray(K, dtype=np.float64).reshape(3, 3), d,
                    T_camera_cloud, camera_frame, cloud_frame)
+
+
+def distort(x: np.ndarray, y: np.ndarray, D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised image coordinates (z = 1) of a pinhole camera -> where plumb_bob distortion
+    D (k1 k2 p1 p2 k3) puts them (OpenCV's model)."""
+    k1, k2, p1, p2, k3 = D
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    return (x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
+            y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)
 
 
 def _distortion(values: Any) -> np.ndarray:

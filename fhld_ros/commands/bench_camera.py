@@ -4,7 +4,8 @@ images of a simulated drive (salad/sim_source.py, the fixed camera of seed BENCH
 camera: medians (ms) over REPEATS runs of each stage as camera_lane_detector runs it, with the
 node's default model_threads and model_runtime, and flip_average as
 FHLD_BENCH_CAMERA_FLIP_AVERAGE says (default 1, the node's default; 0: one pass):
-camera_warp_ms (resampling to the virtual camera), camera_model_ms (the network as served, on
+camera_warp_ms (resampling to the virtual camera; camera_warp_distorted_ms: the same with a
+lens's distortion removed, the PJLab camera's), camera_model_ms (the network as served, on
 the image and its mirror with flip_average; camera_model_eager_ms: the same network in eager
 torch), camera_jpeg_decode_ms (a CompressedImage JPEG of the image, quality 90, to pixels: what
 image_transport:=compressed adds), camera_decode_ms (maps -> 3D lanes, on the maps of the
@@ -68,6 +69,7 @@ REPEATS = 30
 SECONDS = float(os.environ.get('FHLD_BENCH_CAMERA_SECONDS', '20'))
 FLIP_AVERAGE = os.environ.get('FHLD_BENCH_CAMERA_FLIP_AVERAGE', '1') != '0'
 RATE_HZ = 10.0
+LENS = np.array([-0.108, 0.139, -0.0038, -0.0048, 0.0])  # the PJLab camera's plumb_bob
 START_NS = 1_700_000_000_000_000_000
 NODE_START_TIMEOUT_SEC = 90.0
 # the node's counters (/diagnostics) reported as camera_live_node_<name>
@@ -118,6 +120,7 @@ def _bench_camera(sample: CameraLaneSample) -> dict[str, float | str]:
     cfg = detector.cfg
     image, k = sample.image, sample.intrinsics
     warp_ms = time_median(lambda: cfg.camera.warp(image, k), repeats=REPEATS)
+    distorted_ms = time_median(lambda: cfg.camera.warp(image, k, LENS), repeats=REPEATS)
     x = detector.batch(cfg.camera.warp(image, k))  # as served: with its mirror, if flip_average
 
     def eager() -> None:
@@ -146,7 +149,8 @@ def _bench_camera(sample: CameraLaneSample) -> dict[str, float | str]:
             'camera_torch_threads': float(torch.get_num_threads()),
             'camera_model_runtime': type(detector.network).__name__,
             'camera_flip_average': float(FLIP_AVERAGE),
-            'camera_warp_ms': warp_ms, 'camera_model_ms': model_ms,
+            'camera_warp_ms': warp_ms, 'camera_warp_distorted_ms': distorted_ms,
+            'camera_model_ms': model_ms,
             'camera_model_eager_ms': eager_ms, 'camera_jpeg_decode_ms': jpeg_ms,
             'camera_decode_ms': _decode_ms(sample, cfg),
             'camera_decode_network_ms': time_median(lambda: decode(*maps, cfg), repeats=REPEATS),

@@ -54,13 +54,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def image_labels(image: CameraImage, lanes: list[np.ndarray], scores: np.ndarray,
                  min_score: float) -> ImageLabels:
     """The lanes (optical frame) scoring >= min_score, projected with the image's own K and
-    cut to the image, as its 2D labels."""
+    lens distortion and cut to the image, as its 2D labels."""
     width, height = image.camera.width, image.camera.height
     labels = []
     for lane, score in zip(lanes, scores):
         if score < min_score:
             continue
-        uv = project(lane, image.camera.K)
+        uv = project(lane, image.camera.K, image.camera.D)
         uv = uv[(uv[:, 0] >= 0) & (uv[:, 0] <= width - 1) & (uv[:, 1] >= 0)
                 & (uv[:, 1] <= height - 1)]
         if len(uv) >= 2 and np.ptp(uv, axis=0).max() >= MIN_LABEL_PX:
@@ -96,7 +96,8 @@ def write_pseudo_labels(in_bag: Path, out_dir: Path, min_score: float = DEFAULT_
         image = pipeline.due_image()
         if image is None:
             continue
-        labels = image_labels(image, *pipeline.detector(image.rgb, image.camera.K), min_score)
+        labels = image_labels(image, *pipeline.detector(
+            image.rgb, image.camera.K, distortion=image.camera.D), min_score)
         out_dir.mkdir(parents=True, exist_ok=True)
         path = label_path(out_dir, image.stamp_ns)
         check_file_output(path, overwrite, {'IN_BAG': in_bag}, 'OUT_DIR')

@@ -111,9 +111,10 @@ class CameraLaneDetectorNode(Node):
             self._drop('bad_camera_info', problem)
         elif camera is not None and camera.distorted and not self.said_distorted:
             self.said_distorted = True
-            self.get_logger().warning(
-                f'{self.params.camera_info_topic} has lens distortion; SALAD takes images as '
-                'undistorted: subscribe to a rectified image (image_rect) for exact lanes')
+            self.get_logger().info(
+                f'{self.params.camera_info_topic} has lens distortion (plumb_bob '
+                f'{", ".join(f"{c:.4g}" for c in camera.D)}): removed from each image as it is '
+                'resampled (a rectified image_rect needs camera_info without it)')
 
     def on_image(self, msg: Image) -> None:
         arrived = time.monotonic()

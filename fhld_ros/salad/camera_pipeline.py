@@ -58,13 +58,15 @@ REGION_PX_PER_UNIT = 1000.0  # the region the model sees, as a camera: pixels pe
 
 
 class CameraLaneDetector(Protocol):
-    """SaladDetector's shape: (H, W, 3) uint8 RGB and K -> lanes ((N, 3) optical frame) and
-    scores; its config (virtual camera, decoder depth) and the last call's stage timings."""
+    """SaladDetector's shape: (H, W, 3) uint8 RGB, K, the road plane if known and the lens
+    distortion if any -> lanes ((N, 3) optical frame) and scores; its config (virtual camera,
+    decoder depth) and the last call's stage timings."""
 
     cfg: SaladConfig
     timings_ms: dict[str, float]
 
-    def __call__(self, image: np.ndarray, intrinsics: np.ndarray, road: RoadPlane | None = None
+    def __call__(self, image: np.ndarray, intrinsics: np.ndarray, road: RoadPlane | None = None,
+                 distortion: np.ndarray | None = None
                  ) -> tuple[list[np.ndarray], np.ndarray]: ...
 
 
@@ -306,7 +308,8 @@ class CameraPipeline:
 
     def detect_image(self, image: CameraImage) -> LaneOutput:
         """SALAD on one image; lanes above score_threshold, in the output frame."""
-        lanes_optical, scores = self.detector(image.rgb, image.camera.K, self.road)
+        lanes_optical, scores = self.detector(image.rgb, image.camera.K, self.road,
+                                              image.camera.D if image.camera.distorted else None)
         start = time.perf_counter()
         keep = [i for i, score in enumerate(scores) if score >= self.params.score_threshold]
         confidences = np.asarray(scores, dtype=np.float64)[keep]

@@ -21,6 +21,7 @@ from fhld_ros.model.inference import serving_graph
 from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT, load_salad
 from fhld_ros.salad.decode import decode
 from fhld_ros.salad.road_plane import RoadPlane
+from fhld_ros.salad.virtual_camera import warm_sampler
 
 MIRROR_SIGN = torch.tensor([-1.0, 1.0, 1.0]).view(3, 1, 1)  # du, dv, dz of a mirrored map
 
@@ -46,13 +47,17 @@ class SaladDetector:
         camera = self.cfg.camera  # the graph is built now, not on the first image (~1 s)
         # the graph is bound to the shape it is built for: that of batch()
         self.network(self.batch(np.zeros((camera.height, camera.width, 3), dtype=np.uint8)))
+        warm_sampler()  # a distorted camera's first image does not wait for its compiling
         self.timings_ms: dict[str, float] = {}
 
     @torch.inference_mode()
-    def maps(self, image: np.ndarray, intrinsics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The network's maps of one image: lane probability (h, w) and spatial (3, h, w)."""
+    def maps(self, image: np.ndarray, intrinsics: np.ndarray,
+             distortion: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The network's maps of one image (its plumb_bob distortion, if any, removed by the
+        warp): lane probability (h, w) and spatial (3, h, w)."""
         start = time.perf_counter()
-        x = self.batch(self.cfg.camera.warp(np.asarray(image), np.asarray(intrinsics)))
+        x = self.batch(self.cfg.camera.warp(np.asarray(image), np.asarray(intrinsics),
+                                            distortion))
         warp_done = time.perf_counter()
         seg, spatial = self.network(x)
         prob = torch.sigmoid(seg[:, 0])
@@ -72,11 +77,12 @@ class SaladDetector:
         x = torch.from_numpy(warped).permute(2, 0, 1)[None]
         return torch.cat([x, x.flip(-1)]) if self.flip_average else x
 
-    def __call__(self, image: np.ndarray, intrinsics: np.ndarray, road: RoadPlane | None = None
-                 ) -> tuple[list[np.ndarray], np.ndarray]:
+    def __call__(self, image: np.ndarray, intrinsics: np.ndarray, road: RoadPlane | None = None,
+                 distortion: np.ndarray | None = None) -> tuple[list[np.ndarray], np.ndarray]:
         """Lanes ((N, 3) optical frame, metres, near to far) and their scores; road: the road
-        under the camera where its mount is known (road_plane.py)."""
-        prob, spatial = self.maps(image, intrinsics)
+        under the camera where its mount is known (road_plane.py); distortion: the image's
+        plumb_bob coefficients, if any."""
+        prob, spatial = self.maps(image, intrinsics, distortion)
         start = time.perf_counter()
         lanes, scores = decode(prob, spatial, self.cfg, road)
         self.timings_ms['decode_ms'] = (time.perf_counter() - start) * 1e3

@@ -103,7 +103,7 @@ def score(detector: SaladDetector, samples: Iterable[CameraLaneSample],
     for sample in samples:
         road = (dataclasses.replace(sample.road, until_m=road_until_m)
                 if road_until_m > 0 and sample.road is not None else None)
-        lanes, scores = detector(sample.image, sample.intrinsics, road)
+        lanes, scores = detector(sample.image, sample.intrinsics, road, sample.distortion)
         pred = [optical_to_window(lane) for lane in lanes]
         gt = [optical_to_window(lane) for lane in sample.lanes if len(lane) >= 2]
         matches = once_matches(pred, gt, HALF_SIZE_M)  # one assignment for every tau

@@ -23,7 +23,8 @@ class CameraParams:
 
     image_topic: str = documented(
         'camera/image_raw', 'input sensor_msgs/Image topic (rgb8, bgr8, rgba8, bgra8, mono8, '
-        'yuv422 or yuv422_yuy2; rectified: SALAD ignores lens distortion)', length='[1, inf)')
+        "yuv422 or yuv422_yuy2); camera_info's plumb_bob lens distortion is removed from it",
+        length='[1, inf)')
     image_transport: str = documented(
         'raw', "'raw': sensor_msgs/Image on image_topic; 'compressed': "
         'sensor_msgs/CompressedImage (JPEG, PNG) on <image_topic>/compressed, as '

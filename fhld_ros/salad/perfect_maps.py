@@ -35,9 +35,9 @@ class PerfectMaps:
             self._lanes = sample.lanes  # the optical frame: the virtual camera's too
             yield sample
 
-    def __call__(self, image: np.ndarray, intrinsics: np.ndarray, road: RoadPlane | None = None
-                 ) -> tuple[list[np.ndarray], np.ndarray]:
-        prob, spatial = self.detector.maps(image, intrinsics)
+    def __call__(self, image: np.ndarray, intrinsics: np.ndarray, road: RoadPlane | None = None,
+                 distortion: np.ndarray | None = None) -> tuple[list[np.ndarray], np.ndarray]:
+        prob, spatial = self.detector.maps(image, intrinsics, distortion)
         cfg = self.detector.cfg
         target = lane_targets(self._lanes, cfg.camera)
         lane = target.seg > 0

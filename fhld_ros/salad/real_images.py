@@ -1,11 +1,13 @@
 """`fhld salad-real [DIR]`: SALAD on the real camera images of the development set
 (../shared/real_scans, README there): the two OpenLane frames, scored against their 3D GT, and
 the nuScenes CAM_FRONT and PJLab front images, which have no lane GT; --draw writes each image
-with its lanes (red; OpenLane GT green). Lens distortion is not removed (the PJLab camera's is
-small near the centre; nuScenes images come undistorted)."""
+with its lanes (red; OpenLane GT green). The PJLab camera's lens distortion (its calibration's
+k1 k2 p1 p2) is removed as the camera node removes camera_info's; nuScenes and OpenLane images
+come without."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from collections.abc import Iterator
@@ -42,7 +44,7 @@ def with_lanes(sample: CameraLaneSample, once_json: Path) -> CameraLaneSample:
     """The sample with the 3D lanes of an ONCE-style JSON ({"lanes": [[[x, y, z], ...]]})."""
     lanes = [np.asarray(lane, dtype=np.float64) for lane in
              json.loads(once_json.read_text())['lanes']]
-    return CameraLaneSample(sample.image, sample.intrinsics, lanes, sample.name)
+    return dataclasses.replace(sample, lanes=lanes)
 
 
 def unlabelled_images(root: Path) -> Iterator[CameraLaneSample]:
@@ -58,9 +60,11 @@ def unlabelled_images(root: Path) -> Iterator[CameraLaneSample]:
     if (pjlab / 'center_camera-intrinsic.json').is_file():
         param = json.loads((pjlab / 'center_camera-intrinsic.json').read_text())[
             'center_camera-intrinsic']['param']
+        distortion = param.get('cam_dist', {}).get('data')
         yield CameraLaneSample(np.asarray(Image.open(pjlab / '0.png').convert('RGB')),
                                np.asarray(param['cam_K']['data'], dtype=np.float64), [],
-                               'pjlab_center_camera')
+                               'pjlab_center_camera', distortion=None if distortion is None
+                               else np.asarray(distortion, dtype=np.float64).ravel())
 
 
 def run(args: argparse.Namespace) -> int:
@@ -89,13 +93,13 @@ def run(args: argparse.Namespace) -> int:
     if args.draw:
         args.draw.mkdir(parents=True, exist_ok=True)
     for sample in [*openlane, *others]:
-        lanes, scores = detector(sample.image, sample.intrinsics)
+        lanes, scores = detector(sample.image, sample.intrinsics, distortion=sample.distortion)
         name = sample.name.replace('/', '_')
         results.setdefault('lanes', {})[name] = len(lanes)
         print(f'{name}: {len(lanes)} lanes ({", ".join(f"{s:.2f}" for s in scores)})')
         if args.draw:
             draw_lanes(sample.image, sample.intrinsics, lanes, sample.lanes or None,
-                       args.draw / f'{name}.jpg')
+                       args.draw / f'{name}.jpg', distortion=sample.distortion)
     if args.json:
         json.dump(results, sys.stdout)
         print()

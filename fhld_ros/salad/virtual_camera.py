@@ -4,15 +4,21 @@ A network cannot read the focal length off an image, and depth scales with it: t
 seen through a 50 or a 90 degree lens gives different depths at the same pixel. So images
 from any camera are resampled, ray for ray, to VirtualCamera (same optical frame, square
 pixels, fixed focal length and principal point); 3D lanes in the optical frame stay as they
-are. Resampling is a scale and shift per axis (no skew): one antialiased PIL resize.
+are. Resampling is a scale and shift per axis (no skew): one antialiased PIL resize. A camera
+with lens distortion (plumb_bob, as camera_info gives it) is undistorted on the way: the image
+resized (antialiased) to the virtual focal length, then sampled bilinearly where the distortion
+puts each virtual pixel's ray.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from PIL import Image
 
+from fhld_ros.camera.calibration import distort
+from fhld_ros.compiled import compiled
 from fhld_ros.dataclass_dict import documented
 
 
@@ -42,12 +48,16 @@ class VirtualCamera:
         return (k[0, 2] + (u - self.cx) * k[0, 0] / self.focal,
                 k[1, 2] + (v - self.cy) * k[1, 1] / self.focal)
 
-    def warp(self, image: np.ndarray, k: np.ndarray) -> np.ndarray:
-        """(H, W, 3) uint8 image of intrinsics k -> (height, width, 3) uint8 of this camera;
-        what the source does not cover is black. ValueError for a skewed k."""
+    def warp(self, image: np.ndarray, k: np.ndarray, d: np.ndarray | None = None
+             ) -> np.ndarray:
+        """(H, W, 3) uint8 image of intrinsics k and plumb_bob distortion d (k1 k2 p1 p2 [k3];
+        None or zeros: none) -> (height, width, 3) uint8 of this camera; what the source does
+        not cover is black. ValueError for a skewed k."""
         k = np.asarray(k, dtype=np.float64)
         if abs(k[0, 1]) > 1e-6 * k[0, 0]:
             raise ValueError(f'intrinsics with skew {k[0, 1]:g} are not supported')
+        if d is not None and np.any(d):
+            return self._undistort(image, k, np.asarray(d, dtype=np.float64))
         h, w = image.shape[:2]
         # the virtual pixels whose centres fall inside the source image
         u_source, v_source = self.source_pixels(k, np.arange(self.width),
@@ -66,6 +76,84 @@ class VirtualCamera:
             (c1 - c0, r1 - r0), Image.BILINEAR, box=box)
         out[r0:r1, c0:c1] = np.asarray(patch)
         return out
+
+
+    def _undistort(self, image: np.ndarray, k: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """warp() for a distorted camera: the part of the image the virtual camera sees, resized
+        (antialiased) to the virtual focal length, then sampled bilinearly at each virtual
+        pixel's distorted position."""
+        h, w = image.shape[:2]
+        remap = _undistort_map(self, tuple(k.ravel()), tuple(np.append(d, np.zeros(5))[:5]),
+                               (w, h))  # k1 k2 p1 p2 as many calibrations give them: k3 = 0
+        out = np.zeros((self.height * self.width, 3), dtype=np.uint8)
+        if remap is not None:
+            box, size, u, v = remap
+            small = np.asarray(Image.fromarray(np.ascontiguousarray(image)).resize(
+                size, Image.BILINEAR, box=box))
+            sample_bilinear(small, u, v, out)
+        return out.reshape(self.height, self.width, 3)
+
+
+@lru_cache(maxsize=8)
+def _undistort_map(camera: VirtualCamera, k: tuple[float, ...], d: tuple[float, ...],
+                   source: tuple[int, int]
+                   ) -> tuple[tuple[int, ...], tuple[int, int], np.ndarray, np.ndarray] | None:
+    """(the source box the virtual camera sees, its size resized to the virtual focal length,
+    and per virtual pixel (row-major) where its ray falls in that resized box: u, v pixel
+    centres, NaN outside the image or where the polynomial folds back); None when nothing of
+    the image is seen. Cached: a camera's map is the same for every image."""
+    K = np.asarray(k).reshape(3, 3)
+    w, h = source
+    v, u = np.mgrid[0:camera.height, 0:camera.width].reshape(2, -1).astype(np.float64)
+    x, y = (u - camera.cx) / camera.focal, (v - camera.cy) / camera.focal
+    corner_r2 = (np.max(np.square(np.array([-K[0, 2], w - K[0, 2]]) / K[0, 0]))
+                 + np.max(np.square(np.array([-K[1, 2], h - K[1, 2]]) / K[1, 1])))
+    xd, yd = distort(x, y, np.asarray(d))
+    su, sv = K[0, 0] * xd + K[0, 2], K[1, 1] * yd + K[1, 2]  # source pixel centres
+    seen = (x * x + y * y < 4.0 * corner_r2) & (su >= -0.5) & (su <= w - 0.5) & \
+        (sv >= -0.5) & (sv <= h - 0.5)
+    if not seen.any():
+        return None
+    # the source pixels around the seen positions, two more each side for the resize's filter
+    left, top = (max(0, int(np.floor(c[seen].min())) - 2) for c in (su, sv))
+    right = min(w, int(np.ceil(su[seen].max())) + 3)
+    bottom = min(h, int(np.ceil(sv[seen].max())) + 3)
+    size = (max(1, round((right - left) * camera.focal / K[0, 0])),
+            max(1, round((bottom - top) * camera.focal / K[1, 1])))
+    # PIL maps the box's edges onto the resized image's: centre c -> (c + 0.5 - edge) * scale
+    u_small = (su + 0.5 - left) * size[0] / (right - left) - 0.5
+    v_small = (sv + 0.5 - top) * size[1] / (bottom - top) - 0.5
+    u_small[~seen] = np.nan
+    return ((left, top, right, bottom), size, u_small.astype(np.float32),
+            v_small.astype(np.float32))
+
+
+@compiled
+def sample_bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
+    """out[p] = image (H, W, C) uint8 sampled bilinearly at pixel centre (u[p], v[p]), clamped
+    to the image; 0 where u[p] is NaN."""
+    h, w, channels = image.shape
+    for p in range(u.shape[0]):
+        if u[p] != u[p]:
+            for c in range(channels):
+                out[p, c] = 0
+            continue
+        uc = min(max(np.float64(u[p]), 0.0), w - 1.0)
+        vc = min(max(np.float64(v[p]), 0.0), h - 1.0)
+        u0, v0 = int(uc), int(vc)
+        u1, v1 = min(u0 + 1, w - 1), min(v0 + 1, h - 1)
+        fu, fv = uc - u0, vc - v0
+        for c in range(channels):
+            upper = image[v0, u0, c] * (1.0 - fu) + image[v0, u1, c] * fu
+            lower = image[v1, u0, c] * (1.0 - fu) + image[v1, u1, c] * fu
+            out[p, c] = np.uint8(upper * (1.0 - fv) + lower * fv + 0.5)
+
+
+def warm_sampler() -> None:
+    """Compile sample_bilinear (or load it from numba's cache) with the types warp() calls it
+    with."""
+    nan = np.full(1, np.nan, dtype=np.float32)
+    sample_bilinear(np.zeros((1, 1, 3), np.uint8), nan, nan, np.zeros((1, 3), np.uint8))
 
 
 def _inside(coords: np.ndarray, size: int) -> tuple[int, int] | None:
