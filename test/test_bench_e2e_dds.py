@@ -1,5 +1,5 @@
-"""`fhld bench e2e --dds` and `camera_live --dds`: a node end to end over the DDS transports,
-a process each."""
+"""`fhld bench e2e --dds`: the node end to end over both DDS transports, a process each (the
+same plumbing, bench_e2e.transport_child, runs `camera_live --dds`)."""
 from __future__ import annotations
 
 import math
@@ -25,16 +25,6 @@ def test_bench_e2e_reports_both_transports(monkeypatch):
         assert f'e2e_{dds}_node_clouds_lost_in_dds' in report
         assert not any(key.startswith(('e2e_e2e_', 'latency', 'sweeps')) for key in report)
     assert report['e2e_project_sweeps_published'] == 30
-
-
-def test_bench_camera_live_names_its_transport():
-    from fhld_ros.commands.bench_camera import bench_camera_live
-    report = bench_camera_live(seconds=2, dds='default')
-    assert report['camera_live_default_images_published'] == 20
-    p50 = report['camera_live_default_latency_ms_p50']
-    assert math.isfinite(p50) and p50 > 0, report
-    assert 'camera_live_default_node_images_lost_in_dds' in report
-    assert all(key.startswith('camera_live_default_') for key in report), report
 
 
 def test_unknown_dds_transport_is_refused_by_argparse(capsys):
