@@ -8,8 +8,12 @@ Publishes /camera/camera_info and either /camera/image_raw (sensor_msgs/Image, r
 message) or, with --jpeg, /camera/image_raw/compressed (sensor_msgs/CompressedImage, format
 'rgb8; jpeg compressed bgr8' as image_transport's compressed plugin writes it) at --hz on the
 wall clock: 960x540 images of a road with two white lines. With --corrupt-after N, one image
-cut short half a frame after image N. Waits for a subscriber on both topics first. Prints one
-JSON line: the stamps (ns) of the good images published. Imports nothing from fhld_ros.
+cut short half a frame after image N. Waits for a subscriber on both topics first. With
+--latched-info, camera_info goes out once, at start, transient local (as a driver that latches
+it): before any subscriber exists; then it waits for a transient-local reader of it. With
+--go-on-stdin, the images start once a line comes on stdin as well (when the test's listener is
+ready). Prints one JSON line: the stamps (ns) of the good images published. Imports nothing from
+fhld_ros.
 """
 from __future__ import annotations
 
@@ -17,13 +21,14 @@ import argparse
 import array
 import io
 import json
+import sys
 import time
 
 import rclpy
 from graph_publisher import sleep_until  # this folder: the LiDAR driver's publisher
 from PIL import Image as PilImage
 from PIL import ImageDraw
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 WIDTH, HEIGHT, FOCAL = 960, 540, 685.0
@@ -78,29 +83,45 @@ def main() -> int:
     parser.add_argument('--hz', type=float, default=10.0)
     parser.add_argument('--corrupt-after', type=int, default=-1)
     parser.add_argument('--jpeg', action='store_true', help='CompressedImage JPEGs')
+    parser.add_argument('--latched-info', action='store_true',
+                        help='camera_info once, at start, transient local')
+    parser.add_argument('--go-on-stdin', action='store_true',
+                        help='the images wait for a line on stdin too')
     parser.add_argument('--match-timeout', type=float, default=60.0)
     args = parser.parse_args()
     rclpy.init()
     node = rclpy.create_node('camera_publisher')
     qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-    info_pub = node.create_publisher(CameraInfo, 'camera/camera_info', qos)
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    info_pub = node.create_publisher(CameraInfo, 'camera/camera_info',
+                                     latched if args.latched_info else qos)
+    if args.latched_info:
+        info_pub.publish(camera_info(time.time_ns()))
     image_pub = (node.create_publisher(CompressedImage, 'camera/image_raw/compressed', qos)
                  if args.jpeg else node.create_publisher(Image, 'camera/image_raw', qos))
     deadline = time.monotonic() + args.match_timeout
-    while info_pub.get_subscription_count() < 1 or image_pub.get_subscription_count() < 1:
+    while info_pub.get_subscription_count() < 1 or image_pub.get_subscription_count() < 1 or (
+            args.latched_info and not any(
+                info.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                for info in node.get_subscriptions_info_by_topic('/camera/camera_info'))):
         if time.monotonic() > deadline:
             raise SystemExit('camera_publisher: the node never subscribed')
         time.sleep(0.05)
     time.sleep(1.0)  # both sides of the match settled
+    if args.go_on_stdin:
+        sys.stdin.readline()
     image = road()
     period = int(1e9 / args.hz)
     start = time.time_ns() + 200_000_000
-    info_pub.publish(camera_info(start - period))  # the intrinsics before the first image
+    if not args.latched_info:
+        info_pub.publish(camera_info(start - period))  # the intrinsics before the first image
     stamps = []
     for k in range(args.frames):
         stamp = start + k * period
         sleep_until(stamp)
-        info_pub.publish(camera_info(stamp))
+        if not args.latched_info:
+            info_pub.publish(camera_info(stamp))
         image_pub.publish(image_message(stamp, image, args.jpeg))
         stamps.append(stamp)
         if k == args.corrupt_after:

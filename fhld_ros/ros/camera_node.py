@@ -13,12 +13,17 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.callback_groups import (
+    CallbackGroup,
+    MutuallyExclusiveCallbackGroup,
+    ReentrantCallbackGroup,
+)
 from rclpy.event_handler import QoSMessageLostInfo
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from fhld_ros.lane_output import lane_messages
@@ -32,6 +37,46 @@ from msg_adapters.family import rclpy_family
 
 WARN_THROTTLE_SEC = 5.0
 FAMILY = rclpy_family()
+# camera_info streamed with the images: best effort matches reliable and best-effort publishers
+STREAMED = QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT)
+# ... or latched: published once, transient local (its history reaches reliable readers only)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+class CameraInfoInput:
+    """The camera_info subscription, for a driver that streams it and for one that latches it
+    (publishes it once, transient local, often before this node starts). A volatile reader never
+    gets a latched message sent before it, and a transient-local reader matches no volatile
+    publisher (DDS's durability rule; rclpy's BEST_AVAILABLE chooses transient local when no
+    publisher exists yet, and then refuses the usual stream): so it reads STREAMED, and LATCHED
+    while every publisher of the topic latches (`match`, on the housekeeping timer)."""
+
+    def __init__(self, node: Node, topic: str, callback: Callable[[CameraInfo], None],
+                 group: CallbackGroup) -> None:
+        self.node, self.topic, self.callback, self.group = node, topic, callback, group
+        self.subscription = None
+        self.subscribe(STREAMED)
+
+    def subscribe(self, qos: QoSProfile) -> None:
+        if self.subscription is not None:
+            self.node.destroy_subscription(self.subscription)
+        self.subscription = self.node.create_subscription(
+            CameraInfo, self.topic, self.callback, qos, callback_group=self.group)
+        self.qos = qos
+        if qos is LATCHED:
+            self.node.get_logger().info(f'{self.topic} is latched: subscribed transient local')
+
+    def match(self) -> None:
+        infos = self.node.get_publishers_info_by_topic(self.node.resolve_topic_name(self.topic))
+        if not infos:
+            return
+        latched = all(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                      and i.qos_profile.reliability == ReliabilityPolicy.RELIABLE
+                      for i in infos)
+        wanted = LATCHED if latched else STREAMED
+        if wanted is not self.qos:
+            self.subscribe(wanted)
 
 
 class CameraLaneDetectorNode(Node):
@@ -65,18 +110,21 @@ class CameraLaneDetectorNode(Node):
         # keep last 2: only the newest image counts
         self.images = SensorInput(self, *self.image_input(), self.on_image, 2, self.inputs,
                                   self.on_lost, p.input_reliability)
-        # best effort matches reliable and best-effort drivers alike; only the newest counts
-        self.create_subscription(
-            CameraInfo, p.camera_info_topic, self.on_camera_info,
-            QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT),
-            callback_group=self.inputs)
+        # streamed or latched, only the newest counts
+        self.camera_info = CameraInfoInput(self, p.camera_info_topic, self.on_camera_info,
+                                           self.inputs)
         self.lane_pubs, self.diag_pub = create_outputs(self, p.lanes_topic)
         # Reentrant: a wake-up that finds a detection running returns at once (never queues)
         self.wake_detection = self.create_guard_condition(
             self.on_detection_due, callback_group=ReentrantCallbackGroup())
-        create_housekeeping(self, self.publish_diagnostics,
-                            self.images.match if p.input_reliability == 'auto' else None,
-                            self.inputs)
+        create_housekeeping(self, self.publish_diagnostics, self.match_publishers, self.inputs)
+
+    def match_publishers(self) -> None:
+        """The inputs' QoS to their publishers': camera_info's durability, and the images'
+        reliability with input_reliability 'auto'."""
+        if self.params.input_reliability == 'auto':
+            self.images.match()
+        self.camera_info.match()
 
     def image_input(self) -> tuple[type, str]:
         """The image message type and topic image_transport names (image_transport's topic

@@ -33,9 +33,9 @@ def create_outputs(node: Node, lanes_topic: str) -> tuple[dict[str, Publisher], 
 def create_housekeeping(node: Node, publish_diagnostics: Callable[[], None],
                         match_publisher_qos: Callable[[], None] | None,
                         inputs: CallbackGroup) -> None:
-    """/diagnostics every second and, for input_reliability 'auto' (`match_publisher_qos`),
-    the publishers' QoS checked in the inputs' group; both on the wall clock, so diagnostics
-    keep coming when a bag (ROS time) stops."""
+    """/diagnostics every second and, when given, `match_publisher_qos` (the inputs matched to
+    their publishers' QoS, e.g. input_reliability 'auto') in the inputs' group; both on the
+    wall clock, so diagnostics keep coming when a bag (ROS time) stops."""
     wall = Clock(clock_type=ClockType.STEADY_TIME)
     node.create_timer(1.0, publish_diagnostics,
                       callback_group=MutuallyExclusiveCallbackGroup(), clock=wall)
