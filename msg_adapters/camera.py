@@ -54,7 +54,7 @@ def msg_to_image(msg: Any) -> np.ndarray:
     if encoding not in _ENCODINGS and encoding not in _YUV422:
         raise ValueError(f'image encoding {msg.encoding!r} is not supported (use '
                          f'{", ".join([*_ENCODINGS, *_YUV422])})')
-    channels, blue_first = _ENCODINGS.get(encoding, (2, False))
+    channels, blue_first = _ENCODINGS.get(encoding, (2, False))  # 4:2:2 YUV: 2 bytes a pixel
     height, width, step = int(msg.height), int(msg.width), int(msg.step)
     data = np.frombuffer(_as_bytes(msg.data), dtype=np.uint8)
     if step < width * channels or data.size < step * height or (channels == 2 and width % 2):

@@ -81,11 +81,7 @@ class CameraCalibration:
     @property
     def max_r2(self) -> float:
         """Squared normalised radius of the image corners (undistorted estimate)."""
-        corners = np.array([[0, 0], [self.width, 0], [0, self.height], [self.width, self.height]],
-                           dtype=np.float64)
-        x = (corners[:, 0] - self.K[0, 2]) / self.K[0, 0]
-        y = (corners[:, 1] - self.K[1, 2]) / self.K[1, 1]
-        return float(np.max(x * x + y * y))
+        return corner_r2(self.width, self.height, self.K)
 
     @property
     def camera_in_cloud(self) -> np.ndarray:
@@ -159,10 +155,20 @@ class CameraCalibration:
                    T_camera_cloud, camera_frame, cloud_frame)
 
 
+def corner_r2(width: int, height: int, K: np.ndarray) -> float:
+    """Squared normalised radius of a width x height image's corners (undistorted estimate):
+    far beyond it the distortion polynomial folds back into the image."""
+    corners = np.array([[0, 0], [width, 0], [0, height], [width, height]], dtype=np.float64)
+    x = (corners[:, 0] - K[0, 2]) / K[0, 0]
+    y = (corners[:, 1] - K[1, 2]) / K[1, 1]
+    return float(np.max(x * x + y * y))
+
+
 def distort(x: np.ndarray, y: np.ndarray, D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Normalised image coordinates (z = 1) of a pinhole camera -> where plumb_bob distortion
-    D (k1 k2 p1 p2 k3) puts them (OpenCV's model)."""
-    k1, k2, p1, p2, k3 = D
+    D (k1 k2 p1 p2 [k3]: k3 = 0 when absent, as many calibrations give it) puts them (OpenCV's
+    model)."""
+    k1, k2, p1, p2, k3 = np.append(np.asarray(D, dtype=np.float64).ravel(), np.zeros(5))[:5]
     r2 = x * x + y * y
     radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
     return (x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),

@@ -90,6 +90,7 @@ def group_points(points: np.ndarray) -> list[np.ndarray]:
     one."""
     order = np.argsort(points[:, SLICE], kind='stable').tolist()
     x, z, depth_slice = (points[order, column].tolist() for column in (X, Z, SLICE))
+    reach = link_reach(points[order, Z]).tolist()
     lanes: list[_Lane] = []
     first = 0
     while first < len(order):
@@ -102,7 +103,7 @@ def group_points(points: np.ndarray) -> list[np.ndarray]:
         used: set[int] = set()
         taken: set[int] = set()
         for cost, a, b in pairs:
-            if a in used or b in taken or cost > max(LINK_M, LINK_FRACTION * z[a]):
+            if a in used or b in taken or cost > reach[a]:
                 continue
             alive[b].add(order[a], x[a], z[a], depth_slice[a])
             used.add(a)

@@ -20,7 +20,7 @@ def project(lane: np.ndarray, k: np.ndarray, distortion: np.ndarray | None = Non
     pts = lane[lane[:, 2] > MIN_DEPTH_M]
     x, y = pts[:, 0] / pts[:, 2], pts[:, 1] / pts[:, 2]
     if distortion is not None and np.any(distortion):
-        x, y = distort(x, y, np.append(distortion, np.zeros(5))[:5])
+        x, y = distort(x, y, distortion)
     return np.column_stack([k[0, 0] * x + k[0, 1] * y + k[0, 2], k[1, 1] * y + k[1, 2]])
 
 

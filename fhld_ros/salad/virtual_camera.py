@@ -17,7 +17,7 @@ from functools import lru_cache
 import numpy as np
 from PIL import Image
 
-from fhld_ros.camera.calibration import distort
+from fhld_ros.camera.calibration import corner_r2, distort
 from fhld_ros.compiled import compiled
 from fhld_ros.dataclass_dict import documented
 
@@ -83,8 +83,7 @@ class VirtualCamera:
         (antialiased) to the virtual focal length, then sampled bilinearly at each virtual
         pixel's distorted position."""
         h, w = image.shape[:2]
-        remap = _undistort_map(self, tuple(k.ravel()), tuple(np.append(d, np.zeros(5))[:5]),
-                               (w, h))  # k1 k2 p1 p2 as many calibrations give them: k3 = 0
+        remap = _undistort_map(self, tuple(k.ravel()), tuple(d.ravel()), (w, h))
         out = np.zeros((self.height * self.width, 3), dtype=np.uint8)
         if remap is not None:
             box, size, u, v = remap
@@ -106,11 +105,9 @@ def _undistort_map(camera: VirtualCamera, k: tuple[float, ...], d: tuple[float, 
     w, h = source
     v, u = np.mgrid[0:camera.height, 0:camera.width].reshape(2, -1).astype(np.float64)
     x, y = (u - camera.cx) / camera.focal, (v - camera.cy) / camera.focal
-    corner_r2 = (np.max(np.square(np.array([-K[0, 2], w - K[0, 2]]) / K[0, 0]))
-                 + np.max(np.square(np.array([-K[1, 2], h - K[1, 2]]) / K[1, 1])))
     xd, yd = distort(x, y, np.asarray(d))
     su, sv = K[0, 0] * xd + K[0, 2], K[1, 1] * yd + K[1, 2]  # source pixel centres
-    seen = (x * x + y * y < 4.0 * corner_r2) & (su >= -0.5) & (su <= w - 0.5) & \
+    seen = (x * x + y * y < 4.0 * corner_r2(w, h, K)) & (su >= -0.5) & (su <= w - 0.5) & \
         (sv >= -0.5) & (sv <= h - 0.5)
     if not seen.any():
         return None
