@@ -260,6 +260,27 @@ def test_footprint_is_the_ground_the_camera_sees_at_any_pitch(roll_deg: float) -
     assert seen >= 8
 
 
+@pytest.mark.parametrize('D', [(-0.3, 0.1, 0.0, 0.0, 0.0), (0.1, 0.0, 0.002, -0.003, 0.0)])
+def test_footprint_through_a_lens_claims_only_ground_the_image_shows(D: tuple) -> None:
+    # in undistorted coordinates a barrel lens's border bows out between the image corners and
+    # a pincushion lens's bows in: the outline of either is the box inside that border
+    calib = CameraCalibration(640, 400, intrinsics(640, 400), np.array(D), np.eye(4))
+    reach = 40.0
+    rng = np.random.default_rng(2)
+    ground = np.column_stack([rng.uniform(-60, 60, (40_000, 2)), np.zeros(40_000)])
+    for pitch in (-20.0, -5.0, 0.0, 3.0, 10.0, 30.0, 60.0):
+        T = _camera(pitch, 0.0)
+        outline = camera_footprint(calib, T, np.array([0.0, 0, 1]), np.zeros(3), reach)
+        T_camera_out = np.linalg.inv(T)
+        _, depth, visible = calib.project_camera(ground @ T_camera_out[:3, :3].T +
+                                                 T_camera_out[:3, 3])
+        visible &= depth <= reach
+        inside = inside_polygon(ground[:, :2], outline[:4, :2])
+        assert not np.any(inside & ~visible), pitch  # the corners' box claimed up to 2.3x
+        if -5.0 <= pitch <= 10.0:  # a car's camera: the box misses little (steep: 35-100 %)
+            assert inside.sum() >= 0.95 * visible.sum(), (pitch, inside.sum(), visible.sum())
+
+
 def test_once_dataset_gives_salad_the_labelled_images(drive: Path, capsys):
     from fhld_ros.salad.once_format import read_once
 

@@ -26,12 +26,19 @@ from ros_helpers import RawLaneOutputs, feed, spinning, wait_until
 from sensor_msgs.msg import CameraInfo, Image
 
 from fhld_ros.bagio import BagWriter, read_raw
+from fhld_ros.camera.calibration import distort
 from fhld_ros.commands.replay_camera import CAMERA_INFO_TOPIC, IMAGE_TOPIC, replay_camera
 from fhld_ros.lane_output import LANE_TOPICS
-from fhld_ros.salad.camera_pipeline import OPTICAL_TO_FLU, CameraPipeline
+from fhld_ros.salad.camera_pipeline import (
+    OPTICAL_TO_FLU,
+    CameraIntrinsics,
+    CameraPipeline,
+    seen_region,
+)
 from fhld_ros.salad.config import SaladConfig
 from fhld_ros.salad.parameters import CameraParams
 from fhld_ros.salad.road_plane import RoadPlane
+from fhld_ros.salad.virtual_camera import VirtualCamera
 from msg_adapters.camera import camera_info_msg, compressed_image_msg, image_to_msg, msg_to_image
 from msg_adapters.family import rosbags_family
 from msg_adapters.lanes import DELETEALL, LINE_STRIP
@@ -271,6 +278,27 @@ def test_lanes_come_out_in_the_output_frame_with_ego_lanes_and_the_seen_ground()
     assert flu[0, 0] == pytest.approx(1.5 / np.tan(np.arctan(165.5 / 400)), rel=0.05)
     assert flu[1, 0] == pytest.approx(60.0) and flu[0, 1] < 0 < flu[3, 1]
     np.testing.assert_array_equal(flu[0], flu[4])
+
+
+def test_the_seen_region_of_a_barrel_lens_is_wider_and_inside_its_image():
+    # a camera narrower than the virtual one: its own border bounds the region the model sees
+    K = np.array([[700.0, 0.0, 320.0], [0.0, 700.0, 180.0], [0.0, 0.0, 1.0]])
+    boxes = []
+    for D in (np.zeros(5), np.array([-0.3, 0.1, 0.001, -0.002, 0.0])):
+        region = seen_region(CameraIntrinsics(640, 360, K, D, 'camera'), VirtualCamera())
+        k = region.K
+        low = -k[:2, 2] / np.diag(k)[:2]
+        high = low + np.array([region.width, region.height]) / np.diag(k)[:2]
+        x, y = np.meshgrid(np.linspace(low[0], high[0], 9), np.linspace(low[1], high[1], 9))
+        u, v = distort(x.ravel(), y.ravel(), D)
+        u, v = 700.0 * u + 320.0, 700.0 * v + 180.0
+        assert np.all((u > -0.5) & (u < 640.5) & (v > -0.5) & (v < 360.5))  # all in the image
+        assert min(u.min(), 640 - u.max(), v.min(), 360 - v.max()) < 0.5  # and up to its edge
+        boxes.append(high - low)
+    pinhole, barrel = boxes
+    # between the corners a barrel lens shows more than a pinhole with the same K (above, the
+    # virtual camera's own edge bounds both)
+    assert barrel[0] > 1.05 * pinhole[0] and barrel[1] > pinhole[1], (barrel, pinhole)
 
 
 class TrainedOn(RoadDetector):

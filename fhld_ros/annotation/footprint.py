@@ -6,14 +6,15 @@ where h is the camera's height over the plane and g = -n.(R (x, y, 1)) is linear
 Depth <= reach is then the half plane g >= h / reach of the image: the image rectangle cut by
 one line parallel to the horizon (a ray above the horizon is cut at the range), a convex
 polygon of 3 to 5 corners that the plane maps to a convex polygon on the ground, whatever the
-pitch. The corners are the undistorted image corners: with lens distortion the border is
-curved and the straight edges between them only approximate it.
+pitch. With lens distortion the image's border is curved in normalised coordinates; the
+rectangle is then the largest box inside it (calibration.seen_box), which claims no ground the
+image does not show.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from fhld_ros.camera.calibration import CameraCalibration
+from fhld_ros.camera.calibration import CameraCalibration, seen_box
 
 MIN_HEIGHT_M = 0.1  # a camera this close to (or below) the ground plane sees no footprint
 MIN_AREA_M2 = 1.0  # smaller footprints are degenerate: no outline
@@ -41,9 +42,9 @@ def camera_footprint(calib: CameraCalibration, T_out_camera: np.ndarray, normal:
     if height < MIN_HEIGHT_M or reach_m <= 0:
         return None
     w, h = calib.width, calib.height
-    # image corners in the order that is counter-clockwise on the ground ahead
-    rays = calib.pixel_rays(np.array([[w, h], [w, 0], [0, 0], [0, h]], dtype=np.float64))
-    xy1 = rays / rays[:, 2:3]  # undistorted, on the plane z = 1 of the optical frame
+    # the seen box's corners (optical frame, z = 1), counter-clockwise on the ground ahead
+    (x0, y0), (x1, y1) = seen_box(w, h, calib.K, calib.D)
+    xy1 = np.array([[x1, y1, 1.0], [x1, y0, 1.0], [x0, y0, 1.0], [x0, y1, 1.0]])
     coef = -(normal @ R)  # g(x, y) = coef . (x, y, 1)
     xy1 = _clip_half_plane(xy1, coef, height / reach_m)
     if len(xy1) < 3:

@@ -18,6 +18,7 @@ from msg_adapters.camera import camera_info_values, tf_transforms
 
 MIN_DEPTH_M = 0.1  # points nearer the image plane than this are not projected
 UNDISTORT_STEPS = 10
+BORDER_SAMPLES = 65  # points per image side where seen_box undistorts the border
 
 
 @dataclass(frozen=True)
@@ -64,18 +65,7 @@ class CameraCalibration:
     def pixel_rays(self, uv: np.ndarray) -> np.ndarray:
         """(N, 2) pixels -> (N, 3) unit directions in the camera optical frame (distortion
         undone by fixed-point iteration, as OpenCV's undistortPoints does)."""
-        K = self.K
-        y = (uv[:, 1] - K[1, 2]) / K[1, 1]
-        x = (uv[:, 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
-        if np.any(self.D):
-            k1, k2, p1, p2, k3 = self.D
-            xd, yd = x, y
-            for _ in range(UNDISTORT_STEPS):
-                r2 = x * x + y * y
-                radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-                x = (xd - 2 * p1 * x * y - p2 * (r2 + 2 * x * x)) / radial
-                y = (yd - p1 * (r2 + 2 * y * y) - 2 * p2 * x * y) / radial
-        rays = np.column_stack([x, y, np.ones_like(x)])
+        rays = np.column_stack([undistort(uv, self.K, self.D), np.ones(len(uv))])
         return rays / np.linalg.norm(rays, axis=1, keepdims=True)
 
     @property
@@ -164,11 +154,47 @@ def corner_r2(width: int, height: int, K: np.ndarray) -> float:
     return float(np.max(x * x + y * y))
 
 
+def plumb_bob(D: np.ndarray) -> np.ndarray:
+    """k1 k2 p1 p2 k3 of D, k3 = 0 where D gives four (as many calibrations do)."""
+    return np.append(np.asarray(D, dtype=np.float64).ravel(), np.zeros(5))[:5]
+
+
+def undistort(uv: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """(N, 2) pixels -> (N, 2) normalised image coordinates (z = 1) of the pinhole camera they
+    show (plumb_bob D undone by fixed-point iteration, as OpenCV's undistortPoints does)."""
+    y = (uv[:, 1] - K[1, 2]) / K[1, 1]
+    x = (uv[:, 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
+    if np.any(D):
+        k1, k2, p1, p2, k3 = plumb_bob(D)
+        xd, yd = x, y
+        for _ in range(UNDISTORT_STEPS):
+            r2 = x * x + y * y
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            x = (xd - 2 * p1 * x * y - p2 * (r2 + 2 * x * x)) / radial
+            y = (yd - p1 * (r2 + 2 * y * y) - 2 * p2 * x * y) / radial
+    return np.column_stack([x, y])
+
+
+def seen_box(width: int, height: int, K: np.ndarray, D: np.ndarray) -> tuple[np.ndarray,
+                                                                               np.ndarray]:
+    """(low, high): the axis-aligned box of normalised image coordinates (z = 1) inside what
+    a width x height image sees; the image itself without distortion. A lens bends the image's
+    border in those coordinates (outwards between the corners for a barrel lens, inwards for a
+    pincushion one), so each side of the box is where that border side comes nearest the
+    centre."""
+    t = np.linspace(0.0, 1.0, BORDER_SAMPLES)
+    one, zero = np.ones_like(t), np.zeros_like(t)
+    sides = [np.column_stack(uv) for uv in ((zero, t * height), (one * width, t * height),
+                                            (t * width, zero), (t * width, one * height))]
+    left, right, top, bottom = (undistort(side, K, D) for side in sides)
+    return (np.array([left[:, 0].max(), top[:, 1].max()]),
+            np.array([right[:, 0].min(), bottom[:, 1].min()]))
+
+
 def distort(x: np.ndarray, y: np.ndarray, D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Normalised image coordinates (z = 1) of a pinhole camera -> where plumb_bob distortion
-    D (k1 k2 p1 p2 [k3]: k3 = 0 when absent, as many calibrations give it) puts them (OpenCV's
-    model)."""
-    k1, k2, p1, p2, k3 = np.append(np.asarray(D, dtype=np.float64).ravel(), np.zeros(5))[:5]
+    D (plumb_bob()) puts them (OpenCV's model)."""
+    k1, k2, p1, p2, k3 = plumb_bob(D)
     r2 = x * x + y * y
     radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
     return (x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),

@@ -30,7 +30,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from fhld_ros.annotation.footprint import camera_footprint, ground_plane
-from fhld_ros.camera.calibration import CameraCalibration
+from fhld_ros.camera.calibration import CameraCalibration, seen_box
 from fhld_ros.errors import ConfigError
 from fhld_ros.lane_output import LaneIdTracker, LaneOutput, ego_lane_bounds
 from fhld_ros.pipeline import DUE_FRACTION
@@ -171,14 +171,14 @@ def check_camera_info(msg: Any) -> CameraIntrinsics:
 
 
 def seen_region(camera: CameraIntrinsics, virtual: VirtualCamera) -> CameraCalibration | None:
-    """The part of the image the model sees (where the image and the virtual camera it is
-    resampled to overlap) as a pinhole camera of its own, whose image corners are that part's
-    corners; None when they do not overlap."""
-    K, f = camera.K, virtual.focal
-    low = np.maximum([-K[0, 2] / K[0, 0], -K[1, 2] / K[1, 1]],
-                     [-virtual.cx / f, -virtual.cy / f])
-    high = np.minimum([(camera.width - K[0, 2]) / K[0, 0], (camera.height - K[1, 2]) / K[1, 1]],
-                      [(virtual.width - virtual.cx) / f, (virtual.height - virtual.cy) / f])
+    """The part of the image the model sees (where the image, its lens undone, and the virtual
+    camera it is resampled to overlap) as a pinhole camera of its own, whose image corners are
+    that part's corners; None when they do not overlap."""
+    f = virtual.focal
+    seen_low, seen_high = seen_box(camera.width, camera.height, camera.K, camera.D)
+    low = np.maximum(seen_low, [-virtual.cx / f, -virtual.cy / f])
+    high = np.minimum(seen_high, [(virtual.width - virtual.cx) / f,
+                                  (virtual.height - virtual.cy) / f])
     if np.any(high - low <= 1.0 / REGION_PX_PER_UNIT):
         return None
     size = np.round((high - low) * REGION_PX_PER_UNIT)
