@@ -138,10 +138,17 @@ def _float_field(family: MessageFamily, values: np.ndarray) -> Any:
         [float(v) for v in values]
 
 
-def camera_info_values(msg: Any) -> tuple[int, int, np.ndarray, np.ndarray, str]:
+def camera_info_values(msg: Any, rectified: bool = False
+                       ) -> tuple[int, int, np.ndarray, np.ndarray, str]:
     """sensor_msgs/CameraInfo -> (width, height, K (3, 3), D (the message's d as given, e.g.
     (5,) or empty), frame_id). ValueError for a distortion model that is not plumb_bob
-    (rational_polynomial is accepted when its k4..k6 are zero)."""
+    (rational_polynomial is accepted when its k4..k6 are zero). For rectified images
+    (image_proc's image_rect) the intrinsics are P's left 3x3 and D is empty, whatever lens
+    the raw image came through."""
+    if rectified:
+        P = np.asarray(list(msg.p), dtype=np.float64).reshape(3, 4)
+        return int(msg.width), int(msg.height), P[:, :3].copy(), np.zeros(0), \
+            str(msg.header.frame_id)
     model = str(msg.distortion_model)
     d = np.asarray(list(msg.d), dtype=np.float64)
     if model not in _PLUMB_BOB_LIKE and np.any(d):

@@ -33,6 +33,7 @@ from fhld_ros.salad.camera_pipeline import (
     OPTICAL_TO_FLU,
     CameraIntrinsics,
     CameraPipeline,
+    distortion_notice,
     seen_region,
 )
 from fhld_ros.salad.config import SaladConfig
@@ -188,6 +189,18 @@ def test_replay_reads_a_bags_compressed_images(drive, tmp_path):
         assert lanes[0] == lanes[1] and len(lanes[0]) == IMAGES
 
 
+def test_replay_warns_of_a_lens_on_images_that_look_rectified(tmp_path, capsys):
+    with BagWriter(tmp_path / 'rect') as writer:
+        info = _info(d=np.array([-0.1, 0.01, 0.0, 0.0, 0.0]))
+        writer.write('/front/camera_info', 'sensor_msgs/msg/CameraInfo', 0, info)
+        writer.write('/front/image_rect', 'sensor_msgs/msg/Image', 1, _image(1))
+    stats = replay_camera(tmp_path / 'rect', tmp_path / 'lanes', CameraParams(),
+                          '/front/image_rect', '/front/camera_info', progress=False)
+    assert stats['detections'] == 1
+    err = capsys.readouterr().err
+    assert '/front/image_rect looks rectified already' in err and 'image_rectified:=true' in err
+
+
 def _node_error(*ros_args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, '-m', 'fhld_ros.ros.camera_lane_detector',
                            '--ros-args', *ros_args], capture_output=True, text=True, timeout=120)
@@ -278,6 +291,35 @@ def test_lanes_come_out_in_the_output_frame_with_ego_lanes_and_the_seen_ground()
     assert flu[0, 0] == pytest.approx(1.5 / np.tan(np.arctan(165.5 / 400)), rel=0.05)
     assert flu[1, 0] == pytest.approx(60.0) and flu[0, 1] < 0 < flu[3, 1]
     np.testing.assert_array_equal(flu[0], flu[4])
+
+
+def test_rectified_images_take_p_and_no_distortion():
+    # image_proc's image_rect comes with the raw camera's camera_info: a fisheye's K and D, and
+    # P, the intrinsics of the rectified images
+    info = _info(d=np.array([-0.05, 0.01, 0.002, -0.001]))
+    info.distortion_model = 'equidistant'
+    P = np.array([[520.0, 0.0, 470.0, 0.0], [0.0, 520.0, 265.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
+    info.p = P.ravel()
+    raw = CameraPipeline(CameraParams(), RoadDetector())
+    assert "distortion_model 'equidistant' is not supported" in str(raw.receive_camera_info(info))
+    rect = CameraPipeline(CameraParams(image_topic='camera/image_rect', image_rectified=True),
+                          RoadDetector())
+    assert rect.receive_camera_info(info) is None
+    np.testing.assert_array_equal(rect.camera.K, P[:, :3])
+    assert not rect.camera.distorted
+    assert rect.receive_image(_image(0)).due and rect.detect() is not None
+    assert rect.detector.distortions == [None]
+    info.p = np.zeros(12)  # a driver that never filled P
+    assert 'camera_info P is all zero' in str(rect.receive_camera_info(info))
+
+
+@pytest.mark.parametrize('topic, level', [
+    ('camera/image_raw', 'info'), ('/front/image_rect_color', 'warning'),
+    ('/front/image_rect/compressed', 'warning'), ('/front/rect_image', 'warning'),
+    ('/front/image_rectangle', 'info')])
+def test_distortion_on_a_rectified_looking_topic_is_warned_about(topic: str, level: str):
+    text, said = distortion_notice(topic, '/front/camera_info', np.array([-0.1, 0.01, 0, 0, 0]))
+    assert said == level and 'image_rectified:=true' in text and '-0.1, 0.01' in text
 
 
 def test_the_seen_region_of_a_barrel_lens_is_wider_and_inside_its_image():

@@ -20,7 +20,7 @@ from tqdm import tqdm
 from fhld_ros.bagio import BagWriter, check_output, read_messages, topic_counts
 from fhld_ros.errors import ConfigError
 from fhld_ros.lane_output import LANE_TOPICS, lane_messages
-from fhld_ros.salad.camera_pipeline import CameraPipeline, load_camera_detector
+from fhld_ros.salad.camera_pipeline import CameraPipeline, distortion_notice, load_camera_detector
 from fhld_ros.salad.parameters import CameraParams, load_camera_params_yaml
 from msg_adapters.family import stamp_to_ns
 
@@ -64,11 +64,18 @@ def feed_camera(pipeline: CameraPipeline, in_bag: Path, counts: dict[str, int],
     topics = [camera_info_topic, image_topic]
     bar = tqdm(total=sum(counts[t] for t in topics), unit='msg', disable=not progress,
                desc=desc, file=sys.stderr)
+    said_distorted = False
     try:
         for topic, _, msg in read_messages(in_bag, topics):
             bar.update()
             if topic == camera_info_topic:
                 problem = pipeline.receive_camera_info(msg)
+                camera = pipeline.camera
+                if problem is None and camera.distorted and not said_distorted:
+                    said_distorted = True
+                    text, level = distortion_notice(image_topic, camera_info_topic, camera.D)
+                    if level == 'warning':
+                        bar.write(f'warning: {text}', file=sys.stderr)
             else:
                 problem = pipeline.receive_image(msg).dropped
             if problem is not None:

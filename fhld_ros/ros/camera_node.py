@@ -31,7 +31,12 @@ from fhld_ros.ros.camera_diagnostics import CameraStats
 from fhld_ros.ros.declare import declare_params
 from fhld_ros.ros.executor import run_node
 from fhld_ros.ros.shell import SensorInput, create_housekeeping, create_outputs
-from fhld_ros.salad.camera_pipeline import CameraPipeline, ImageIntake, load_camera_detector
+from fhld_ros.salad.camera_pipeline import (
+    CameraPipeline,
+    ImageIntake,
+    distortion_notice,
+    load_camera_detector,
+)
 from fhld_ros.salad.parameters import NODE_NAME, CameraParams
 from msg_adapters.family import rclpy_family
 
@@ -159,10 +164,9 @@ class CameraLaneDetectorNode(Node):
             self._drop('bad_camera_info', problem)
         elif camera is not None and camera.distorted and not self.said_distorted:
             self.said_distorted = True
-            self.get_logger().info(
-                f'{self.params.camera_info_topic} has lens distortion (plumb_bob '
-                f'{", ".join(f"{c:.4g}" for c in camera.D)}): removed from each image as it is '
-                'resampled (a rectified image_rect needs camera_info without it)')
+            text, log = distortion_notice(self.params.image_topic, self.params.camera_info_topic,
+                                          camera.D)
+            getattr(self.get_logger(), log)(text)
 
     def on_image(self, msg: Image) -> None:
         arrived = time.monotonic()

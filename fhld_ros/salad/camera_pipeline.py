@@ -23,6 +23,7 @@ params.road_plane_m the near lanes take their depth from output_frame's z = 0 pl
 """
 from __future__ import annotations
 
+import re
 import time
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -55,6 +56,8 @@ PLANE_HEIGHT_M = (0.3, 10.0)
 PLANE_MAX_TILT_DEG = 15.0
 MOUNT_MARGIN_M = 0.1  # beyond the trained heights by more, the near depth is off (salad.md)
 REGION_PX_PER_UNIT = 1000.0  # the region the model sees, as a camera: pixels per tan(angle)
+# image_proc's image_rect and image_rect_color, a driver's rect_image or image_rectified
+RECTIFIED_NAME = re.compile(r'(^|_)rect(ified)?(_|$)')
 
 
 class CameraLaneDetector(Protocol):
@@ -151,22 +154,39 @@ def mount_warning(info: dict[str, Any], road: RoadPlane | None) -> str | None:
             f'as if it were within that range; use {advice}')
 
 
-def check_camera_info(msg: Any) -> CameraIntrinsics:
+def distortion_notice(image_topic: str, camera_info_topic: str, D: np.ndarray
+                      ) -> tuple[str, str]:
+    """(text, 'info' or 'warning') said once when camera_info has lens distortion: removed from
+    each image; a warning when the image topic's name says its images are rectified already
+    (they would be undistorted twice)."""
+    text = (f'{camera_info_topic} has lens distortion (plumb_bob '
+            f'{", ".join(f"{c:.4g}" for c in D)}): removed from each image as it is resampled')
+    names = [n for n in image_topic.split('/') if n and n != 'compressed']
+    if names and RECTIFIED_NAME.search(names[-1]):
+        return (f'{text}; {image_topic} looks rectified already: if it is, set '
+                "image_rectified:=true (intrinsics from camera_info's P, no distortion)",
+                'warning')
+    return f'{text} (rectified images: image_rectified:=true)', 'info'
+
+
+def check_camera_info(msg: Any, rectified: bool = False) -> CameraIntrinsics:
     """camera_info -> CameraIntrinsics; ValueError naming the problem (distortion model, an
-    image size or K that no camera has: K all zero is an uncalibrated camera's)."""
-    width, height, K, D, frame_id = camera_info_values(msg)
+    image size or K that no camera has: K all zero is an uncalibrated camera's). Rectified
+    images take P's left 3x3 for K and no distortion (camera_info_values)."""
+    width, height, K, D, frame_id = camera_info_values(msg, rectified)
+    name = 'P' if rectified else 'K'
     if width <= 0 or height <= 0:
         raise ValueError(f'camera_info size {width}x{height} is not positive')
     if not np.all(np.isfinite(K)) or not np.all(np.isfinite(D)):
-        raise ValueError('camera_info K or D is not finite')
+        raise ValueError(f'camera_info {name} or D is not finite')
     if not np.any(K):
-        raise ValueError('camera_info K is all zero (an uncalibrated camera)')
+        raise ValueError(f'camera_info {name} is all zero (an uncalibrated camera)')
     if K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise ValueError(f'camera_info K has focal lengths {K[0, 0]:g}, {K[1, 1]:g}; both must '
-                         'be > 0')
+        raise ValueError(f'camera_info {name} has focal lengths {K[0, 0]:g}, {K[1, 1]:g}; both '
+                         'must be > 0')
     if abs(K[0, 1]) > 1e-6 * K[0, 0] or np.any(K[2] != [0.0, 0.0, 1.0]) or K[1, 0] != 0:
-        raise ValueError('camera_info K is not a pinhole without skew ([fx 0 cx; 0 fy cy; '
-                         '0 0 1])')
+        raise ValueError(f'camera_info {name} is not a pinhole without skew ([fx 0 cx; 0 fy '
+                         'cy; 0 0 1])')
     return CameraIntrinsics(width, height, K, D, frame_id)
 
 
@@ -249,7 +269,7 @@ class CameraPipeline:
         return None
 
     def add_camera_info(self, msg: Any) -> None:
-        self.camera = check_camera_info(msg)
+        self.camera = check_camera_info(msg, self.params.image_rectified)
         self.counters['camera_infos'] += 1
 
     def receive_image(self, msg: Any) -> ImageIntake:

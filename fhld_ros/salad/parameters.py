@@ -32,6 +32,10 @@ class CameraParams:
     camera_info_topic: str = documented(
         'camera/camera_info', 'input sensor_msgs/CameraInfo topic; its newest message gives '
         'the intrinsics of each image', length='[1, inf)')
+    image_rectified: bool = documented(
+        False, "the images are rectified already (image_proc's image_rect): their intrinsics "
+        "are camera_info's P (its left 3x3), and the raw lens's distortion D is not removed "
+        'again; false: image_raw, K and D')
     lanes_topic: str = documented(
         'lanes', 'output MarkerArray topic; ego lane Paths go to <lanes_topic>/ego_left|right',
         length='[1, inf)')
