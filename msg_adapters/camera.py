@@ -141,14 +141,21 @@ def _float_field(family: MessageFamily, values: np.ndarray) -> Any:
 def camera_info_values(msg: Any, rectified: bool = False
                        ) -> tuple[int, int, np.ndarray, np.ndarray, str]:
     """sensor_msgs/CameraInfo -> (width, height, K (3, 3), D (the message's d as given, e.g.
-    (5,) or empty), frame_id). ValueError for a distortion model that is not plumb_bob
-    (rational_polynomial is accepted when its k4..k6 are zero). For rectified images
-    (image_proc's image_rect) the intrinsics are P's left 3x3 and D is empty, whatever lens
-    the raw image came through."""
+    (5,) or empty), frame_id) of the images it comes with: a binned or region-of-interest
+    camera's (binning_x/y, roi; camera_info describes the full sensor) has its image size and
+    K made those of its images. ValueError for a distortion model that is not plumb_bob
+    (rational_polynomial is accepted when its k4..k6 are zero) or a roi outside the sensor.
+    For rectified images (image_proc's image_rect) the intrinsics are P's left 3x3 and D is
+    empty, whatever lens the raw image came through."""
     if rectified:
-        P = np.asarray(list(msg.p), dtype=np.float64).reshape(3, 4)
-        return int(msg.width), int(msg.height), P[:, :3].copy(), np.zeros(0), \
-            str(msg.header.frame_id)
+        K, d = np.asarray(list(msg.p), dtype=np.float64).reshape(3, 4)[:, :3].copy(), np.zeros(0)
+    else:
+        K, d = np.asarray(list(msg.k), dtype=np.float64).reshape(3, 3), _plumb_bob_d(msg)
+    width, height, K = _binned(msg, K)
+    return width, height, K, d, str(msg.header.frame_id)
+
+
+def _plumb_bob_d(msg: Any) -> np.ndarray:
     model = str(msg.distortion_model)
     d = np.asarray(list(msg.d), dtype=np.float64)
     if model not in _PLUMB_BOB_LIKE and np.any(d):
@@ -159,8 +166,27 @@ def camera_info_values(msg: Any, rectified: bool = False
             raise ValueError('camera_info distortion_model rational_polynomial has non-zero '
                              'k4..k6 (plumb_bob only)')
         d = d[:5]
-    K = np.asarray(list(msg.k), dtype=np.float64).reshape(3, 3)
-    return int(msg.width), int(msg.height), K, d, str(msg.header.frame_id)
+    return d
+
+
+def _binned(msg: Any, K: np.ndarray) -> tuple[int, int, np.ndarray]:
+    """The image size and K of the images a sensor's camera_info comes with: its roi cut out,
+    then binning pixels combined (a binned pixel's centre is the mean of its sensor pixels',
+    pixel (0, 0)'s centre at u = v = 0)."""
+    width, height = int(msg.width), int(msg.height)
+    bx, by = max(1, int(msg.binning_x)), max(1, int(msg.binning_y))
+    roi = msg.roi
+    x0, y0, w, h = int(roi.x_offset), int(roi.y_offset), int(roi.width), int(roi.height)
+    if w == 0 or h == 0:  # the whole sensor (ROS: a roi of zeros)
+        x0, y0, w, h = 0, 0, width, height
+    elif x0 + w > width or y0 + h > height:
+        raise ValueError(f'camera_info roi {w}x{h} at ({x0}, {y0}) lies outside the '
+                         f'{width}x{height} sensor')
+    if (bx, by, x0, y0, w, h) == (1, 1, 0, 0, width, height):
+        return width, height, K
+    S = np.array([[1.0 / bx, 0.0, -(x0 + (bx - 1) / 2) / bx],
+                  [0.0, 1.0 / by, -(y0 + (by - 1) / 2) / by], [0.0, 0.0, 1.0]])
+    return w // bx, h // by, S @ K
 
 
 def transform_msg(family: MessageFamily, T: np.ndarray) -> Any:

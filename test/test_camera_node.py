@@ -322,6 +322,26 @@ def test_distortion_on_a_rectified_looking_topic_is_warned_about(topic: str, lev
     assert said == level and 'image_rectified:=true' in text and '-0.1, 0.01' in text
 
 
+def test_a_binned_or_cropped_camera_s_images_take_their_own_intrinsics():
+    # camera_info describes the full 1920x1080 sensor; the images are binned 2x2 (960x540), or
+    # an 800x400 region of interest at (300, 200)
+    full = np.array([[1370.0, 0.0, 959.5], [0.0, 1370.0, 539.5], [0.0, 0.0, 1.0]])
+    point = np.array([1.7, 0.4, 12.0])  # where the sensor sees it: (u, v) full-resolution
+    seen = (full @ point)[:2] / point[2]
+    for binning, roi, size, pixel in ((2, (0, 0, 0, 0), (960, 540), (seen - 0.5) / 2),
+                                      (1, (300, 200, 800, 400), (800, 400), seen - [300, 200])):
+        info = _info(full, 1920, 1080)
+        info.binning_x = info.binning_y = binning
+        info.roi.x_offset, info.roi.y_offset, info.roi.width, info.roi.height = roi
+        pipeline = CameraPipeline(CameraParams(), RoadDetector())
+        assert pipeline.receive_camera_info(info) is None
+        assert pipeline.receive_image(_image(0, *size)).due  # the images' own size
+        K = pipeline.camera.K
+        np.testing.assert_allclose((K @ point)[:2] / point[2], pixel, atol=1e-9)
+    info.roi.x_offset = 1300  # 800 px from 1300 of 1920
+    assert 'roi 800x400 at (1300, 200) lies outside' in str(pipeline.receive_camera_info(info))
+
+
 def test_the_seen_region_of_a_barrel_lens_is_wider_and_inside_its_image():
     # a camera narrower than the virtual one: its own border bounds the region the model sees
     K = np.array([[700.0, 0.0, 320.0], [0.0, 700.0, 180.0], [0.0, 0.0, 1.0]])
