@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
+from msg_adapters.bayer import BAYER_PATTERNS, demosaic, mosaic
 from msg_adapters.family import MessageFamily
 from msg_adapters.odometry import rigid_matrix, rigid_message
 
@@ -27,15 +28,21 @@ _COLOUR_MODES = ('1', 'L', 'LA', 'P', 'PA', 'RGB', 'RGBA', 'RGBX', 'CMYK', 'YCbC
 _PLUMB_BOB_LIKE = ('plumb_bob', 'rational_polynomial', '')
 
 
-def image_to_msg(family: MessageFamily, header: Any, rgb: np.ndarray) -> Any:
-    """(H, W, 3) uint8 RGB -> sensor_msgs/Image, encoding rgb8."""
+def image_to_msg(family: MessageFamily, header: Any, rgb: np.ndarray,
+                 encoding: str = 'rgb8') -> Any:
+    """(H, W, 3) uint8 RGB -> sensor_msgs/Image, encoding rgb8, or the 8-bit Bayer mosaic a
+    sensor of that pattern records (bayer_rggb8, ...: for tests and benchmarks)."""
     rgb = np.ascontiguousarray(rgb)
     if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
         raise ValueError(f'image must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}')
+    if encoding not in ('rgb8', *BAYER_PATTERNS):
+        raise ValueError(f'image_to_msg writes rgb8 or {", ".join(BAYER_PATTERNS)}, not '
+                         f'{encoding!r}')
+    pixels = rgb if encoding == 'rgb8' else mosaic(rgb, encoding)
     height, width = rgb.shape[:2]
     return family.new('sensor_msgs/msg/Image', header=header, height=height, width=width,
-                      encoding='rgb8', is_bigendian=0, step=3 * width,
-                      data=_data_field(family, rgb.reshape(-1)))
+                      encoding=encoding, is_bigendian=0, step=pixels[0].size,
+                      data=_data_field(family, pixels.reshape(-1)))
 
 
 def _data_field(family: MessageFamily, flat: np.ndarray) -> Any:
@@ -44,17 +51,20 @@ def _data_field(family: MessageFamily, flat: np.ndarray) -> Any:
 
 
 def msg_to_image(msg: Any) -> np.ndarray:
-    """sensor_msgs/Image (rgb8, bgr8, rgba8, bgra8, mono8, or 4:2:2 YUV: yuv422 / uyvy,
-    yuv422_yuy2 / yuyv; rows may be padded) or sensor_msgs/CompressedImage (JPEG, PNG or TIFF,
+    """sensor_msgs/Image (rgb8, bgr8, rgba8, bgra8, mono8, 4:2:2 YUV: yuv422 / uyvy,
+    yuv422_yuy2 / yuyv, or an 8-bit Bayer mosaic: bayer_rggb8, bggr8, gbrg8, grbg8; rows may be
+    padded) or sensor_msgs/CompressedImage (JPEG, PNG or TIFF,
     as image_transport's compressed plugin writes them) -> (H, W, 3) uint8 RGB. ValueError for
     another encoding or format, or data that do not hold the image."""
     if not hasattr(msg, 'encoding') and hasattr(msg, 'format'):
         return compressed_to_image(msg)
     encoding = str(msg.encoding).lower()
-    if encoding not in _ENCODINGS and encoding not in _YUV422:
+    if encoding not in _ENCODINGS and encoding not in _YUV422 and encoding not in BAYER_PATTERNS:
         raise ValueError(f'image encoding {msg.encoding!r} is not supported (use '
-                         f'{", ".join([*_ENCODINGS, *_YUV422])})')
-    channels, blue_first = _ENCODINGS.get(encoding, (2, False))  # 4:2:2 YUV: 2 bytes a pixel
+                         f'{", ".join([*_ENCODINGS, *_YUV422, *BAYER_PATTERNS])})')
+    # 4:2:2 YUV: 2 bytes a pixel; a Bayer mosaic: 1
+    channels, blue_first = _ENCODINGS.get(encoding, (1 if encoding in BAYER_PATTERNS else 2,
+                                                     False))
     height, width, step = int(msg.height), int(msg.width), int(msg.step)
     data = np.frombuffer(_as_bytes(msg.data), dtype=np.uint8)
     if step < width * channels or data.size < step * height or (channels == 2 and width % 2):
@@ -63,6 +73,8 @@ def msg_to_image(msg: Any) -> np.ndarray:
     rows = data[:step * height].reshape(height, step)[:, :width * channels]
     if encoding in _YUV422:
         return _yuv422_to_rgb(rows.reshape(height, width // 2, 4), _YUV422[encoding])
+    if encoding in BAYER_PATTERNS:
+        return demosaic(rows, encoding)
     pixels = rows.reshape(height, width, channels)
     if channels == 1:
         return np.repeat(pixels, 3, axis=2)

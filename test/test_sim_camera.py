@@ -252,8 +252,8 @@ def test_tf_static_round_trips_through_cdr() -> None:
     ((parent, child, T2),) = tf_transforms(back)
     assert (parent, child) == ('lidar', 'camera') and np.allclose(T2, T)
     bgr = image_to_msg(family, family.header(0, 'camera'), np.zeros((2, 2, 3), np.uint8))
-    bgr.encoding = 'bayer_rggb8'
-    with pytest.raises(ValueError, match="'bayer_rggb8' is not supported"):
+    bgr.encoding = 'bayer_rggb16'
+    with pytest.raises(ValueError, match="'bayer_rggb16' is not supported"):
         msg_to_image(bgr)
 
 
@@ -327,6 +327,36 @@ def test_yuv422_images_read_as_rgb(encoding, order) -> None:
     msg.width = 5  # two pixels a quad: an odd width does not fit
     with pytest.raises(ValueError, match='do not hold it'):
         msg_to_image(msg)
+
+
+@pytest.mark.parametrize('encoding', ['bayer_rggb8', 'bayer_bggr8', 'bayer_gbrg8',
+                                      'bayer_grbg8'])
+def test_bayer_images_read_as_rgb(encoding) -> None:
+    # a smooth scene, as a sensor's mosaic samples it (each pixel one colour of its 2x2 tile)
+    v, u = np.mgrid[0:41, 0:60].astype(np.float64)  # odd rows: a tile cut at the border
+    rgb = np.rint(np.stack([40 + 3 * u, 200 - 2 * v, 120 + 60 * np.sin(u / 9 + v / 7)],
+                           axis=-1)).astype(np.uint8)
+    colour = {'r': 0, 'g': 1, 'b': 2}
+    tile = [colour[c] for c in encoding[6:10]]  # e.g. 'rggb': row 0 r g, row 1 g b
+    family = rosbags_family()
+    msg = image_to_msg(family, family.header(0, 'camera'), rgb, encoding)
+    mosaic = np.frombuffer(bytes(msg.data), np.uint8).reshape(41, 60)
+    for i, c in enumerate(tile):  # what the sensor records
+        assert np.array_equal(mosaic[i // 2::2, i % 2::2], rgb[i // 2::2, i % 2::2, c])
+    step = 60 + 4  # rows padded by 4 bytes
+    data = np.zeros((41, step), np.uint8)
+    data[:, :60] = mosaic
+    msg.step, msg.data = step, data.ravel()
+    back = msg_to_image(msg).astype(int)
+    for i, c in enumerate(tile):  # each pixel keeps its own sample
+        assert np.array_equal(back[i // 2::2, i % 2::2, c], mosaic[i // 2::2, i % 2::2])
+    # the others are the mean of their neighbours: exact on a linear ramp (but at the border,
+    # mirrored: one ramp step off), close on the sine
+    ramp = np.abs(back[..., :2] - rgb[..., :2])
+    assert ramp[1:-1, 1:-1].max() <= 1 and ramp.max() <= 3
+    assert np.abs(back[..., 2] - rgb[..., 2]).mean() < 1.5
+    with pytest.raises(ValueError, match="rgb8 or bayer_rggb8, .* not 'bgr8'"):
+        image_to_msg(family, msg.header, rgb, 'bgr8')
 
 
 @pytest.mark.slow

@@ -8,9 +8,10 @@ camera_warp_ms (resampling to the virtual camera; camera_warp_distorted_ms: the 
 lens's distortion removed, the PJLab camera's), camera_model_ms (the network as served, on
 the image and its mirror with flip_average; camera_model_eager_ms: the same network in eager
 torch), camera_jpeg_decode_ms (a CompressedImage JPEG of the image, quality 90, to pixels: what
-image_transport:=compressed adds), camera_decode_ms (maps -> 3D lanes, on the maps of the
-image's own ground-truth lanes, so it costs what a real detection of them costs whatever the
-weights; camera_decode_network_ms
+image_transport:=compressed adds; camera_bayer_decode_ms: a bayer_rggb8 mosaic of it,
+demosaiced), camera_decode_ms (maps -> 3D lanes, on the maps of the image's own ground-truth
+lanes, so it costs what a real detection of them costs whatever the weights;
+camera_decode_network_ms
 on the network's own maps, whose stray cells make more points), and camera_e2e_ms_p50 /
 _p95: image message in -> the three /lanes messages out through CameraPipeline (decode,
 checks, SALAD, frames, ids, outline, serialisation).
@@ -132,6 +133,8 @@ def _bench_camera(sample: CameraLaneSample) -> dict[str, float | str]:
     family = rosbags_family()
     jpeg = compressed_image_msg(family, family.header(0, 'camera'), image, 'jpeg')
     jpeg_ms = time_median(lambda: msg_to_image(jpeg), repeats=REPEATS)
+    bayer = image_to_msg(family, family.header(0, 'camera'), image, 'bayer_rggb8')
+    bayer_ms = time_median(lambda: msg_to_image(bayer), repeats=REPEATS)
     pipeline = CameraPipeline(CameraParams(flip_average=FLIP_AVERAGE), detector)
     pipeline.receive_camera_info(camera_info_msg(family, family.header(0, 'camera'), *SIZE, k))
     msg = image_to_msg(family, family.header(0, 'camera'), image)
@@ -152,6 +155,7 @@ def _bench_camera(sample: CameraLaneSample) -> dict[str, float | str]:
             'camera_warp_ms': warp_ms, 'camera_warp_distorted_ms': distorted_ms,
             'camera_model_ms': model_ms,
             'camera_model_eager_ms': eager_ms, 'camera_jpeg_decode_ms': jpeg_ms,
+            'camera_bayer_decode_ms': bayer_ms,
             'camera_decode_ms': _decode_ms(sample, cfg),
             'camera_decode_network_ms': time_median(lambda: decode(*maps, cfg), repeats=REPEATS),
             'camera_decode_lanes': float(len(sample.lanes)),
