@@ -21,6 +21,10 @@ from fhld_ros.camera.calibration import corner_r2, distort
 from fhld_ros.compiled import compiled
 from fhld_ros.dataclass_dict import documented
 
+# an image shrunk over 6x (a 4K camera's) is first box-averaged by whole factors, leaving 3-6x to
+# the antialiased resize: 3840x2160 in 19 ms instead of 33, pixels a mean 0.4 levels apart
+REDUCING_GAP = 3.0
+
 
 @dataclass(frozen=True)
 class VirtualCamera:
@@ -73,7 +77,7 @@ class VirtualCamera:
         box = (max(u_edges[0] + 0.5, 0.0), max(v_edges[0] + 0.5, 0.0),
                min(u_edges[1] + 0.5, float(w)), min(v_edges[1] + 0.5, float(h)))
         patch = Image.fromarray(np.ascontiguousarray(image)).resize(
-            (c1 - c0, r1 - r0), Image.BILINEAR, box=box)
+            (c1 - c0, r1 - r0), Image.BILINEAR, box=box, reducing_gap=REDUCING_GAP)
         out[r0:r1, c0:c1] = np.asarray(patch)
         return out
 
@@ -88,7 +92,7 @@ class VirtualCamera:
         if remap is not None:
             box, size, u, v = remap
             small = np.asarray(Image.fromarray(np.ascontiguousarray(image)).resize(
-                size, Image.BILINEAR, box=box))
+                size, Image.BILINEAR, box=box, reducing_gap=REDUCING_GAP))
             sample_bilinear(small, u, v, out)
         return out.reshape(self.height, self.width, 3)
 
