@@ -261,14 +261,16 @@ def test_salad_trains_on_a_users_once_and_openlane_data(tmp_path, capsys):
     assert [p.name.split('-')[0] for p in shards] == ['once', 'openlane']
     samples = ShardSamples(shards[:1])
     assert len(samples) == 3 and len(ShardSamples(shards)) == 5
+    model, info = load_salad(out / 'salad.pt')
+    camera = model.cfg.camera  # --init's: the shipped weights' 480 px view
+    assert camera == load_salad(DEFAULT_SALAD_CHECKPOINT)[0].cfg.camera != VirtualCamera()
     for i, sample in enumerate(read_once(tmp_path / 'once', 'train')):
-        want = to_virtual(once[i], VirtualCamera()).image.astype(int)
+        want = to_virtual(once[i], camera).image.astype(int)
         assert np.abs(samples.images[i] - want).mean() < 3  # JPEG
         kept = [lane for lane in sample.lanes if len(lane) >= 2]
         assert len(samples.lanes[i]) == len(kept) > 0
         for got, lane in zip(samples.lanes[i], kept):
             np.testing.assert_allclose(got, lane, atol=1e-5)  # float32 in the shard
-    _, info = load_salad(out / 'salad.pt')
     assert info['meta']['images'] == 5 and len(info['meta']['datasets']) == 2
     assert info['meta']['datasets'][0].endswith(f'{tmp_path / "once"} train')
     # a resumed run reuses the packed images: the shards are not written again, and the

@@ -11,9 +11,9 @@ import pytest
 from fhld_ros.cli import main
 from fhld_ros.salad import train
 from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT, load_salad
-from fhld_ros.salad.config import SaladConfig
 from fhld_ros.salad.dataset import ShardSamples
 from fhld_ros.salad.sim_source import camera_for_seed, salad_seeds
+from fhld_ros.salad.virtual_camera import VirtualCamera
 
 PEAK = 1e-3
 
@@ -39,10 +39,10 @@ def test_a_timed_schedule_goes_by_the_clock_or_the_steps_whichever_is_further(mo
 
 def test_rendering_stops_at_its_time_and_leaves_no_partial_drive(tmp_path, capsys):
     seeds = salad_seeds('train', 2, start=11)
-    train.build_cache(tmp_path, seeds, 1, SaladConfig(), workers=2, seconds=0.0)
+    train.build_cache(tmp_path, seeds, 1, VirtualCamera(), workers=2, seconds=0.0)
     assert list(tmp_path.iterdir()) == []  # cut off: no shard, no temporary file
     assert 'rendered 0 of 2 drives' in capsys.readouterr().err
-    train.build_cache(tmp_path, seeds[:1], 1, SaladConfig(), workers=1)
+    train.build_cache(tmp_path, seeds[:1], 1, VirtualCamera(), workers=1)
     assert [p.name for p in tmp_path.iterdir()] == [f'sim_{seeds[0]}.npz']
 
 
@@ -94,3 +94,31 @@ def test_drives_for_a_users_mount_are_rendered_and_named_apart(tmp_path):
     below = near @ np.array([0.0, np.cos(pitch), np.sin(pitch)])  # the level road's normal
     assert abs(np.median(below) - 2.6) < 0.03 and np.abs(below - 2.6).max() < 0.15  # crowns
     assert load_salad(out / 'salad.pt')[1]['meta']['camera_heights_m'] == [2.6, 2.6]
+
+
+def test_the_shipped_weights_train_on_a_wider_view_and_a_cache_keeps_its_width(tmp_path,
+                                                                                 capsys):
+    out = tmp_path / 'run'
+    run = ['salad-train', str(out), '--drives', '1', '--frames', '1', '--steps', '1',
+           '--batch', '1', '--workers', '0', '--threads', '1',
+           '--init', str(DEFAULT_SALAD_CHECKPOINT)]
+    assert main([*run, '--camera-width', '640']) == 0
+    shipped = load_salad(DEFAULT_SALAD_CHECKPOINT)[0].cfg
+    model = load_salad(out / 'salad.pt')[0]
+    # wider, its rows (and their depth statistics) as the shipped weights'
+    assert shipped.camera.width == 480 and model.cfg.camera.width == 640
+    assert model.cfg.camera.height == shipped.camera.height and \
+        model.cfg.row_shift == shipped.row_shift
+    images = ShardSamples((out / 'cache').glob('*.npz')).images
+    assert images and all(image.shape == (256, 640, 3) for image in images)
+    # the same cache for the shipped 480 px view: its images are not that camera's
+    other = ['salad-train', str(tmp_path / 'other'), '--cache', str(out / 'cache'), *run[2:]]
+    assert main(other) == 2
+    assert 'holds 640x256 images, the virtual camera is 480x256: another --cache' in \
+        capsys.readouterr().err
+    assert main([*other, '--camera-width', '500']) == 2
+    assert 'must be a multiple of 32 px each way' in capsys.readouterr().err
+    # a resumed run keeps its view
+    assert main(['salad-train', str(out), '--drives', '1', '--frames', '1', '--steps', '2',
+                 '--resume', '--camera-width', '480']) == 2
+    assert 'a resumed run keeps its camera (640 px wide)' in capsys.readouterr().err

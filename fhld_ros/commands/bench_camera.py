@@ -26,9 +26,10 @@ counters (overtaken, lost by DDS) and stage medians from its /diagnostics. On ea
 fragments); keys camera_live_project_*, camera_live_default_*.
 
 Both use the shipped fhld_ros/checkpoints/salad.pt; where it is absent an untrained model of
-the shipped config (SaladConfig's defaults, row statistics of the bench image) stands in, and
-camera_weights says so: the timings of warp and network do not depend on the weights, but such
-a model finds no lanes, so its camera_e2e_ms decodes none (camera_decode_ms has the cost).
+SaladConfig's defaults (row statistics of the bench image) stands in, and camera_weights says
+so: the timings of warp and network depend on the view's width (the defaults' 640 px, the
+shipped weights' 480), not on the weights, but such a model finds no lanes, so its
+camera_e2e_ms decodes none (camera_decode_ms has the cost).
 """
 from __future__ import annotations
 
@@ -82,7 +83,7 @@ def _sample() -> CameraLaneSample:
 
 
 def _weights(sample: CameraLaneSample, folder: Path) -> tuple[Path, str]:
-    """(checkpoint, what it is): the shipped one, else an untrained model of its config."""
+    """(checkpoint, what it is): the shipped one, else an untrained model of the defaults."""
     if DEFAULT_SALAD_CHECKPOINT.is_file():
         return DEFAULT_SALAD_CHECKPOINT, 'shipped'
     cfg = SaladConfig()

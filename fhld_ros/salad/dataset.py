@@ -118,15 +118,21 @@ def dataset_sources(cache: Path) -> list[str]:
 class ShardSamples:
     """Every sample of a set of shards, in memory (images stay uint8)."""
 
-    def __init__(self, paths: Iterable[Path]) -> None:
+    def __init__(self, paths: Iterable[Path], camera: VirtualCamera | None = None) -> None:
+        """camera: ValueError naming a shard whose images are not that camera's size."""
         self.images: list[np.ndarray] = []
         self.lanes: list[list[np.ndarray]] = []
         for path in sorted(paths):
             with np.load(path) as shard:
+                images = shard['images']
+                size = images.shape[1:3]
+                if camera is not None and size != (camera.height, camera.width):
+                    raise ValueError(f'{path} holds {size[1]}x{size[0]} images, the virtual '
+                                     f'camera is {camera.width}x{camera.height}')
                 lanes = np.split(shard['points'].astype(np.float64), shard['lane_ends'][:-1]) \
                     if len(shard['lane_ends']) else []
                 starts = np.concatenate([[0], shard['sample_ends'][:-1]])
-                for image, a, b in zip(shard['images'], starts, shard['sample_ends']):
+                for image, a, b in zip(images, starts, shard['sample_ends']):
                     self.images.append(image)
                     self.lanes.append(lanes[a:b])
 

@@ -54,6 +54,7 @@ from fhld_ros.salad.once_format import read_once
 from fhld_ros.salad.openlane_format import read_openlane
 from fhld_ros.salad.sim_source import add_camera_height, camera_heights, salad_seeds
 from fhld_ros.salad.targets import lane_targets, row_statistics
+from fhld_ros.salad.virtual_camera import VirtualCamera
 
 ROW_STATS_SAMPLES = 400
 WARMUP_STEPS = 200
@@ -95,13 +96,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--init', type=Path, metavar='CHECKPOINT',
                         help='start from these SALAD weights (their config and row depth '
                              'statistics; a fresh optimiser and schedule), e.g. the shipped')
+    parser.add_argument('--camera-width', type=int, metavar='PX',
+                        help="the virtual camera's width (a multiple of 32; its rows stay the "
+                        f"same): default --init's, else {VirtualCamera().width} (docs/salad.md, "
+                        '"The width of the view")')
     parser.add_argument('--device', default='cpu')
     parser.add_argument('--threads', type=int, default=0,
                         help='torch threads (0: torch\'s default); 1 keeps a shared machine '
                         'from thrashing')
 
 
-def build_cache(cache: Path, seeds: range, frames: int, cfg: SaladConfig, workers: int,
+def build_cache(cache: Path, seeds: range, frames: int, camera: VirtualCamera, workers: int,
                 seconds: float | None = None, heights_m: tuple[float, float] | None = None
                 ) -> None:
     """The shards of the seeds' drives not yet in cache; seconds: stop rendering then, and
@@ -114,7 +119,7 @@ def build_cache(cache: Path, seeds: range, frames: int, cfg: SaladConfig, worker
     print(f'rendering {len(todo)} drives x {frames} images into {cache}', file=sys.stderr)
     start = time.monotonic()
     with multiprocessing.Pool(max(workers, 1)) as pool:  # leaving it terminates the workers
-        rendering = pool.starmap_async(simulated_shard, [(cache, s, frames, cfg.camera,
+        rendering = pool.starmap_async(simulated_shard, [(cache, s, frames, camera,
                                                           heights_m) for s in todo],
                                        chunksize=1)
         rendering.wait(seconds)
@@ -127,7 +132,7 @@ def build_cache(cache: Path, seeds: range, frames: int, cfg: SaladConfig, worker
           file=sys.stderr)
 
 
-def build_datasets(cache: Path, args: argparse.Namespace, cfg: SaladConfig) -> None:
+def build_datasets(cache: Path, args: argparse.Namespace, camera: VirtualCamera) -> None:
     """The shards of --once and --openlane (dataset.dataset_shards), once per dataset."""
     if args.openlane_labels and not args.openlane:
         raise ConfigError('--openlane-labels needs --openlane ROOT')
@@ -143,7 +148,7 @@ def build_datasets(cache: Path, args: argparse.Namespace, cfg: SaladConfig) -> N
     for kind, source, samples in sources:
         print(f'packing {kind} {source} into {cache}', file=sys.stderr)
         try:
-            shards = dataset_shards(cache, kind, source, samples(), cfg.camera)
+            shards = dataset_shards(cache, kind, source, samples(), camera)
         except ValueError as exc:  # the readers name the file
             raise ConfigError(f'--{kind}: {exc}') from None
         print(f'{kind}: {len(shards)} shards', file=sys.stderr)
@@ -182,8 +187,10 @@ class Schedule:
         return max(by_steps, (time.monotonic() - self.start) / self.seconds)
 
 
-def _start(args: argparse.Namespace, samples: ShardSamples) -> tuple[SaladNet, dict]:
-    """The model and the run state, fresh or from OUT/state.pt."""
+def _start(args: argparse.Namespace) -> tuple[SaladNet | None, dict, VirtualCamera]:
+    """The model (None for a fresh run: its rows are measured on the images), the run state,
+    and the virtual camera the images are resampled to: OUT/state.pt's, --init's or the
+    default, at --camera-width (rows as the weights': their depth statistics are per row)."""
     state_path = args.out / 'state.pt'
     if args.resume:
         if not state_path.exists():
@@ -194,17 +201,26 @@ def _start(args: argparse.Namespace, samples: ShardSamples) -> tuple[SaladNet, d
                               'clock: start another from its salad.pt with --init')
         model = SaladNet(config_from_plain(state['config']))
         model.load_state_dict(state['model'])
-        return model.to(args.device), state
+        if args.camera_width not in (None, model.cfg.camera.width):
+            raise ConfigError(f'--camera-width {args.camera_width}: a resumed run keeps its '
+                              f'camera ({model.cfg.camera.width} px wide)')
+        return model.to(args.device), state, model.cfg.camera
     if state_path.exists():
         raise ConfigError(f'{state_path} exists: --resume to continue it, or another OUT')
     state = {'step': 0, 'command': ' '.join(sys.argv), 'minutes': args.minutes or 0.0}
+    model = None
+    camera = SaladConfig().camera
     if args.init is not None:
         model, info = load_salad(args.init)
-        return model.to(args.device), {**state, 'init': str(args.init),
-                                       'init_steps': info.get('meta', {}).get('steps')}
-    cfg = measure_rows(samples, SaladConfig())
-    cfg.validate()
-    return SaladNet(cfg).to(args.device), state
+        state.update(init=str(args.init), init_steps=info.get('meta', {}).get('steps'))
+        camera = model.cfg.camera
+    if args.camera_width is not None:
+        camera = dataclasses.replace(camera, width=args.camera_width)
+        SaladConfig(camera=camera).validate('--camera-width')
+    if model is not None:  # its convolutions see any width; its rows stay
+        model.cfg = dataclasses.replace(model.cfg, camera=camera)
+        model = model.to(args.device)
+    return model, state, camera
 
 
 def _deadline(args: argparse.Namespace) -> float | None:
@@ -232,13 +248,20 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise ConfigError(f'--drives / --first-drive: {exc}') from None
     heights = camera_heights(args)
-    build_cache(cache, seeds, args.frames, SaladConfig(), args.workers,
+    model, state, camera = _start(args)  # its camera decides how the images are resampled
+    build_cache(cache, seeds, args.frames, camera, args.workers,
                 None if end is None else args.render_share * 60.0 * args.minutes, heights)
-    build_datasets(cache, args, SaladConfig())
-    samples = ShardSamples(finished_shards(cache))
+    build_datasets(cache, args, camera)
+    try:
+        samples = ShardSamples(finished_shards(cache), camera)
+    except ValueError as exc:
+        raise ConfigError(f'{exc}: another --cache') from None
     if not len(samples):
         raise ConfigError(f'no training images in {cache}')
-    model, state = _start(args, samples)
+    if model is None:
+        cfg = measure_rows(samples, SaladConfig(camera=camera))
+        cfg.validate()
+        model = SaladNet(cfg).to(args.device)
     optimiser = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
     if 'optimiser' in state:
         optimiser.load_state_dict(state['optimiser'])

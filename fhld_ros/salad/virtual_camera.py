@@ -31,8 +31,11 @@ class VirtualCamera:
     """width x height pixels, focal length `focal` px, principal point at the horizontal centre
     (so a horizontal flip is exact) and `cy` px from the top (most rows below the horizon)."""
 
-    # multiples of 32: the encoder halves the image five times
-    width: int = documented(480, 'image width (px)', range='[64, 4096]')
+    # multiples of 32: the encoder halves the image five times. 640 px at focal 400 is a
+    # 77-degree view: the 62 degrees of 480 px cut off lanes that the training cameras (50-90
+    # degrees) see, and capped the decoding of perfect maps at F1 78.8 (77 degrees: 85.3;
+    # docs/salad.md, "The width of the view"); the shipped weights' configs keep their 480
+    width: int = documented(640, 'image width (px)', range='[64, 4096]')
     height: int = documented(256, 'image height (px)', range='[64, 4096]')
     focal: float = documented(400.0, 'focal length (px)', range='(0, 100000]')
     cy: float = documented(89.5, 'principal point, px from the top', range='[0, 4096]')
