@@ -96,22 +96,20 @@ def test_drives_for_a_users_mount_are_rendered_and_named_apart(tmp_path):
     assert load_salad(out / 'salad.pt')[1]['meta']['camera_heights_m'] == [2.6, 2.6]
 
 
-def test_the_shipped_weights_train_on_a_wider_view_and_a_cache_keeps_its_width(tmp_path,
-                                                                                 capsys):
-    out = tmp_path / 'run'
+def test_weights_train_on_a_wider_view_and_a_cache_keeps_its_width(tmp_path, capsys):
+    out, narrow = tmp_path / 'run', DEFAULT_SALAD_CHECKPOINT.with_name('salad_wide_mount.pt')
     run = ['salad-train', str(out), '--drives', '1', '--frames', '1', '--steps', '1',
-           '--batch', '1', '--workers', '0', '--threads', '1',
-           '--init', str(DEFAULT_SALAD_CHECKPOINT)]
+           '--batch', '1', '--workers', '0', '--threads', '1', '--init', str(narrow)]
     assert main([*run, '--camera-width', '640']) == 0
-    shipped = load_salad(DEFAULT_SALAD_CHECKPOINT)[0].cfg
+    before = load_salad(narrow)[0].cfg
     model = load_salad(out / 'salad.pt')[0]
-    # wider, its rows (and their depth statistics) as the shipped weights'
-    assert shipped.camera.width == 480 and model.cfg.camera.width == 640
-    assert model.cfg.camera.height == shipped.camera.height and \
-        model.cfg.row_shift == shipped.row_shift
+    # wider, its rows (and their depth statistics) as the weights' it started from
+    assert before.camera.width == 480 and model.cfg.camera.width == 640
+    assert model.cfg.camera.height == before.camera.height and \
+        model.cfg.row_shift == before.row_shift
     images = ShardSamples((out / 'cache').glob('*.npz')).images
     assert images and all(image.shape == (256, 640, 3) for image in images)
-    # the same cache for the shipped 480 px view: its images are not that camera's
+    # the same cache for those weights' own 480 px view: its images are not that camera's
     other = ['salad-train', str(tmp_path / 'other'), '--cache', str(out / 'cache'), *run[2:]]
     assert main(other) == 2
     assert 'holds 640x256 images, the virtual camera is 480x256: another --cache' in \
