@@ -7,6 +7,7 @@ Read from a bag (`/camera/camera_info` + `/tf_static`) or from a calibration YAM
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -181,14 +182,24 @@ def seen_box(width: int, height: int, K: np.ndarray, D: np.ndarray) -> tuple[np.
     a width x height image sees; the image itself without distortion. A lens bends the image's
     border in those coordinates (outwards between the corners for a barrel lens, inwards for a
     pincushion one), so each side of the box is where that border side comes nearest the
-    centre."""
+    centre. Cached per camera: the camera node asks for every image."""
+    x0, y0, x1, y1 = _seen_box(int(width), int(height),
+                               tuple(np.asarray(K, dtype=np.float64).ravel()),
+                               tuple(plumb_bob(D)))
+    return np.array([x0, y0]), np.array([x1, y1])
+
+
+@lru_cache(maxsize=16)
+def _seen_box(width: int, height: int, k: tuple[float, ...], d: tuple[float, ...]
+              ) -> tuple[float, float, float, float]:
+    K, D = np.asarray(k).reshape(3, 3), np.asarray(d)
     t = np.linspace(0.0, 1.0, BORDER_SAMPLES)
     one, zero = np.ones_like(t), np.zeros_like(t)
     sides = [np.column_stack(uv) for uv in ((zero, t * height), (one * width, t * height),
                                             (t * width, zero), (t * width, one * height))]
     left, right, top, bottom = (undistort(side, K, D) for side in sides)
-    return (np.array([left[:, 0].max(), top[:, 1].max()]),
-            np.array([right[:, 0].min(), bottom[:, 1].min()]))
+    return (float(left[:, 0].max()), float(top[:, 1].max()), float(right[:, 0].min()),
+            float(bottom[:, 1].min()))
 
 
 def distort(x: np.ndarray, y: np.ndarray, D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
