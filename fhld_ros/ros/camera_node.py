@@ -96,7 +96,7 @@ class CameraLaneDetectorNode(Node):
         self.pipeline = CameraPipeline(
             self.params, load_camera_detector(
                 self.params.checkpoint, self.params.model_threads, self.params.model_runtime,
-                self.params.flip_average))
+                self.params.flip_average, self.params.road_profile))
         self.get_logger().info(f'parameters: {self.params}')
         if self.pipeline.mount_warning:
             self.get_logger().warning(self.pipeline.mount_warning)

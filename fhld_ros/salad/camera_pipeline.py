@@ -111,13 +111,14 @@ class ImageIntake:
 
 
 def load_camera_detector(checkpoint: str = '', threads: int = 0, runtime: str = 'auto',
-                         flip_average: bool = True) -> SaladDetector:
+                         flip_average: bool = True, road_profile: bool = True
+                         ) -> SaladDetector:
     """SaladDetector of `checkpoint` ('' = the shipped weights) on `threads` CPU threads
-    (0: auto, SaladDetector), `runtime` and `flip_average`; ConfigError naming the file when
-    it is missing or unusable."""
+    (0: auto, SaladDetector), `runtime`, `flip_average` and `road_profile`; ConfigError
+    naming the file when it is missing or unusable."""
     try:
         return SaladDetector(checkpoint or DEFAULT_SALAD_CHECKPOINT, threads, runtime,
-                             flip_average)
+                             flip_average, road_profile)
     except ConfigError as exc:
         if checkpoint:
             raise

@@ -23,6 +23,7 @@ import numpy as np
 
 from fhld_ros.salad.config import STRIDE, SaladConfig
 from fhld_ros.salad.road_plane import RoadPlane
+from fhld_ros.salad.road_profile import shared_row_depth
 
 MIN_DEPTH_M = 1.0
 LINK_M = 0.8  # a point continues a lane within this lateral distance (metres) ...
@@ -44,17 +45,20 @@ def link_reach(z: np.ndarray) -> np.ndarray:
 
 
 def lane_points(prob: np.ndarray, spatial: np.ndarray, cfg: SaladConfig,
-                road: RoadPlane | None = None) -> np.ndarray:
+                road: RoadPlane | None = None, road_profile: bool = True) -> np.ndarray:
     """(P, 6) points (x, y, z, probability, top cell row, depth slice) in the optical frame,
     near slices first, each the probability-weighted mean of a slice's lane cells that lie
-    within the link reach of each other laterally. With a road plane, the near cells take
-    their depth from it (road_plane.py)."""
+    within the link reach of each other laterally. road_profile: the cells' depths pulled
+    towards the one depth per image row they share (road_profile.py); with a road plane, the
+    near cells then take their depth from it (road_plane.py)."""
     mask = prob > cfg.seg_threshold
     rows, cols = np.nonzero(mask)
     cam = cfg.camera
     u = (cols + spatial[0][mask] + 0.5) * STRIDE - 0.5
     v = (rows + spatial[1][mask] + 0.5) * STRIDE - 0.5
     z = np.asarray(cfg.row_shift)[rows] + np.asarray(cfg.row_scale)[rows] * spatial[2][mask]
+    if road_profile:
+        z = shared_row_depth(z, u, v, prob[mask], cam)
     if road is not None:
         z = road.blend(z, u, v, cam)
     # each cell back-projected on its own: a cell row near the horizon spans tens of metres of
@@ -180,11 +184,13 @@ def extend_to_row_edge(lane: np.ndarray, top_row: float, cfg: SaladConfig) -> np
 
 
 def decode(prob: np.ndarray, spatial: np.ndarray, cfg: SaladConfig,
-           road: RoadPlane | None = None) -> tuple[list[np.ndarray], np.ndarray]:
+           road: RoadPlane | None = None, road_profile: bool = True
+           ) -> tuple[list[np.ndarray], np.ndarray]:
     """Lanes ((N, 3) optical frame, near to far) and their scores (mean cell probability)
-    from one image's maps: prob (h, w) in [0, 1], spatial (3, h, w); the near lanes' depth
-    from the road plane where the camera's mount gives one."""
-    points = lane_points(prob, spatial, cfg, road)
+    from one image's maps: prob (h, w) in [0, 1], spatial (3, h, w); depths pulled towards
+    the image's road profile (road_profile.py), the near lanes' from the road plane where the
+    camera's mount gives one."""
+    points = lane_points(prob, spatial, cfg, road, road_profile)
     lanes, scores = [], []
     for index in group_points(points):
         score = float(points[index, PROB].mean())

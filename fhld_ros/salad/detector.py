@@ -32,10 +32,12 @@ class SaladDetector:
     whose workers do not spin, and one with TorchScript, whose OpenMP threads beside other work
     on 2 cores ran the network up to 40x slower); the few torch ops around the network run on
     one thread unless threads says more. flip_average: average the maps of the image and its
-    mirror image (see the module doc)."""
+    mirror image (see the module doc); road_profile: pull the lane cells' depths towards the
+    image's road profile (road_profile.py)."""
 
     def __init__(self, checkpoint: str | os.PathLike = DEFAULT_SALAD_CHECKPOINT,
-                 threads: int = 0, runtime: str = 'auto', flip_average: bool = True) -> None:
+                 threads: int = 0, runtime: str = 'auto', flip_average: bool = True,
+                 road_profile: bool = True) -> None:
         torch.set_num_threads(threads or 1)
         self.model, self.info = load_salad(checkpoint)
         self.cfg = self.model.cfg
@@ -43,7 +45,7 @@ class SaladDetector:
             self.network = serving_graph(self.model, 'cpu', runtime, threads)
         except ValueError as exc:
             raise ConfigError(str(exc)) from exc
-        self.flip_average = flip_average
+        self.flip_average, self.road_profile = flip_average, road_profile
         camera = self.cfg.camera  # the graph is built now, not on the first image (~1 s)
         # the graph is bound to the shape it is built for: that of batch()
         self.network(self.batch(np.zeros((camera.height, camera.width, 3), dtype=np.uint8)))
@@ -84,6 +86,6 @@ class SaladDetector:
         plumb_bob coefficients, if any."""
         prob, spatial = self.maps(image, intrinsics, distortion)
         start = time.perf_counter()
-        lanes, scores = decode(prob, spatial, self.cfg, road)
+        lanes, scores = decode(prob, spatial, self.cfg, road, self.road_profile)
         self.timings_ms['decode_ms'] = (time.perf_counter() - start) * 1e3
         return lanes, scores

@@ -76,6 +76,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "images' GT lanes: what F1 would be with them perfect")
     parser.add_argument('--no-flip-average', dest='flip_average', action='store_false',
                         help='one network pass per image, not the mean with its mirror image')
+    parser.add_argument('--no-road-profile', dest='road_profile', action='store_false',
+                        help="the network's depths as they are, not pulled towards one road "
+                             'depth per image row')
     parser.add_argument('--road-plane', type=float, default=0.0, metavar='M',
                         help="the near lanes' depth from the road plane of the camera's known "
                              'mount (simulated drives), up to M metres (0: off; 20 chosen on '
@@ -177,7 +180,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError('--drives, --first-drive and --road-plane must be >= 0, --frames and '
                           '--workers >= 1')
     heights = camera_heights(args)
-    detector = SaladDetector(args.checkpoint, flip_average=args.flip_average)
+    detector = SaladDetector(args.checkpoint, flip_average=args.flip_average,
+                             road_profile=args.road_profile)
     perfect = PerfectMaps(detector, args.perfect) if args.perfect else None
     sources = {}
     if args.drives:

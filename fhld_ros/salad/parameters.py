@@ -53,6 +53,10 @@ class CameraParams:
     flip_average: bool = documented(
         True, 'average the network maps of the image and its mirror image (one batch of two: '
         'more accurate depth, twice the network time); false = one pass')
+    road_profile: bool = documented(
+        True, "pull the lane depths half way to the one road depth per image row that they "
+        "share (no mount needed; a road's cross slope is fitted too); false = the network's "
+        'depths as they are')
     rate_hz: float = documented(
         10.0, 'detection rate on image stamps: an image at least 0.9 / rate_hz newer than the '
         'last detected one is detected, the others are skipped', range='(0, 1000]')

@@ -49,4 +49,4 @@ class PerfectMaps:
         if 'depth' in self.heads:
             spatial[2] = np.where(target.depth_mask, cfg.depth_residual(target.depth),
                                   spatial[2])
-        return decode(prob, spatial, cfg, road)
+        return decode(prob, spatial, cfg, road, self.detector.road_profile)
