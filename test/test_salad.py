@@ -418,10 +418,10 @@ def test_training_can_start_from_shipped_weights(tmp_path):
 def test_the_served_network_matches_eager_torch(runtime):
     from fhld_ros.model.inference import OnnxGraph, TracedGraph
 
-    detector = SaladDetector(threads=1, runtime=runtime)
+    detector = SaladDetector(threads=1, runtime=runtime, flip_average=True)
     assert isinstance(detector.network, {'onnxruntime': OnnxGraph, 'torchscript': TracedGraph}[
         runtime])
-    camera = detector.cfg.camera  # a batch of two: the image and its mirror (flip_average)
+    camera = detector.cfg.camera  # a batch of two, as with flip_average: the image, its mirror
     x = torch.randint(0, 256, (2, 3, camera.height, camera.width), dtype=torch.uint8,
                       generator=torch.Generator().manual_seed(0))
     with torch.inference_mode():

@@ -3,7 +3,7 @@ images of a simulated drive (salad/sim_source.py, the fixed camera of seed BENCH
 
 camera: medians (ms) over REPEATS runs of each stage as camera_lane_detector runs it, with the
 node's default model_threads and model_runtime, and flip_average as
-FHLD_BENCH_CAMERA_FLIP_AVERAGE says (default 1, the node's default; 0: one pass):
+FHLD_BENCH_CAMERA_FLIP_AVERAGE says (default 0, one pass, the node's default; 1: the mirror too):
 camera_warp_ms (resampling to the virtual camera; camera_warp_distorted_ms: the same with a
 lens's distortion removed, the PJLab camera's), camera_model_ms (the network as served, on
 the image and its mirror with flip_average; camera_model_eager_ms: the same network in eager
@@ -69,7 +69,7 @@ BENCH_SEED = 4_000_123  # a held-out SALAD seed (sim_source.salad_seeds('test') 
 SIZE = (960, 540)
 REPEATS = 30
 SECONDS = float(os.environ.get('FHLD_BENCH_CAMERA_SECONDS', '20'))
-FLIP_AVERAGE = os.environ.get('FHLD_BENCH_CAMERA_FLIP_AVERAGE', '1') != '0'
+FLIP_AVERAGE = os.environ.get('FHLD_BENCH_CAMERA_FLIP_AVERAGE', '0') != '0'
 RATE_HZ = 10.0
 LENS = np.array([-0.108, 0.139, -0.0038, -0.0048, 0.0])  # the PJLab camera's plumb_bob
 START_NS = 1_700_000_000_000_000_000

@@ -111,7 +111,7 @@ class ImageIntake:
 
 
 def load_camera_detector(checkpoint: str = '', threads: int = 0, runtime: str = 'auto',
-                         flip_average: bool = True, road_profile: bool = True
+                         flip_average: bool = False, road_profile: bool = True
                          ) -> SaladDetector:
     """SaladDetector of `checkpoint` ('' = the shipped weights) on `threads` CPU threads
     (0: auto, SaladDetector), `runtime`, `flip_average` and `road_profile`; ConfigError

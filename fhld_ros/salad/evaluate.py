@@ -74,8 +74,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--perfect', nargs='+', choices=HEADS, default=[], metavar='HEAD',
                         help='replace these heads (seg, offsets, depth) by the targets of the '
                              "images' GT lanes: what F1 would be with them perfect")
-    parser.add_argument('--no-flip-average', dest='flip_average', action='store_false',
-                        help='one network pass per image, not the mean with its mirror image')
+    parser.add_argument('--flip-average', action=argparse.BooleanOptionalAction, default=False,
+                        help="the mean of the network's maps of the image and its mirror image "
+                             '(default: one pass, as the node)')
     parser.add_argument('--no-road-profile', dest='road_profile', action='store_false',
                         help="the network's depths as they are, not pulled towards one road "
                              'depth per image row')

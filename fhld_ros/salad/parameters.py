@@ -51,8 +51,9 @@ class CameraParams:
         'auto', "how the network runs: 'auto' (ONNX Runtime when installed, else TorchScript), "
         "'onnxruntime' or 'torchscript'", choices=('auto', 'onnxruntime', 'torchscript'))
     flip_average: bool = documented(
-        True, 'average the network maps of the image and its mirror image (one batch of two: '
-        'more accurate depth, twice the network time); false = one pass')
+        False, 'average the network maps of the image and its mirror image (one batch of two: '
+        'more accurate depth, twice the network time, over 50 ms on a 2-core CPU); false = one '
+        'pass')
     road_profile: bool = documented(
         True, "pull the lane depths half way to the one road depth per image row that they "
         "share (no mount needed; a road's cross slope is fitted too); false = the network's "
