@@ -21,19 +21,21 @@ LANE_X = (-5.25, -1.75, 1.75, 5.25)
 SCATTER = (1.07, 0.94, 0.95, 1.06)
 
 
-def _cells(road: RoadPlane, rows: int = 40) -> tuple[np.ndarray, ...]:
-    """Pixels (u, v) of four straight lanes on `road` from 4 to 50 m, their true depth, lane."""
-    z = np.geomspace(4.0, 50.0, rows)
+def _lanes(z: np.ndarray) -> list[np.ndarray]:
+    """Four straight lanes, at depths z, on a level road HEIGHT below a camera pitched down by
+    PITCH (optical frame)."""
     turn = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(PITCH), -np.sin(PITCH)],
-                     [0.0, np.sin(PITCH), np.cos(PITCH)]])
-    u, v, lane = [], [], []
-    for i, x0 in enumerate(LANE_X):
-        p = np.column_stack([np.full_like(z, x0), np.full_like(z, HEIGHT), z]) @ turn.T
-        u.append(CAMERA.focal * p[:, 0] / p[:, 2] + CAMERA.cx)
-        v.append(CAMERA.focal * p[:, 1] / p[:, 2] + CAMERA.cy)
-        lane.append(np.full(rows, i))
-    u, v = np.concatenate(u), np.concatenate(v)
-    return u, v, road.depth(u, v, CAMERA), np.concatenate(lane)
+                     [0.0, np.sin(PITCH), np.cos(PITCH)]])  # level frame -> pitched optical
+    return [np.column_stack([np.full_like(z, x0), np.full_like(z, HEIGHT), z]) @ turn.T
+            for x0 in LANE_X]
+
+
+def _cells(road: RoadPlane, rows: int = 40) -> tuple[np.ndarray, ...]:
+    """Pixels (u, v) of the four lanes from 4 to 50 m, their depth on `road`, their lane."""
+    points = np.concatenate(_lanes(np.geomspace(4.0, 50.0, rows)))
+    u = CAMERA.focal * points[:, 0] / points[:, 2] + CAMERA.cx
+    v = CAMERA.focal * points[:, 1] / points[:, 2] + CAMERA.cy
+    return u, v, road.depth(u, v, CAMERA), np.repeat(np.arange(len(LANE_X)), rows)
 
 
 def test_lanes_of_one_row_meet_half_way_and_true_depths_stay():
@@ -71,11 +73,7 @@ def test_too_few_cells_or_only_far_ones_keep_their_depths():
 
 
 def test_decoded_lanes_lie_nearer_their_true_place_with_the_profile():
-    turn = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(PITCH), -np.sin(PITCH)],
-                     [0.0, np.sin(PITCH), np.cos(PITCH)]])
-    z = np.linspace(3.0, 60.0, 1000)
-    lanes = [np.column_stack([np.full_like(z, x0), np.full_like(z, HEIGHT), z]) @ turn.T
-             for x0 in LANE_X]
+    lanes = _lanes(np.linspace(3.0, 60.0, 1000))
     targets = lane_targets(lanes, CAMERA)
     shift, scale = row_statistics(targets.depth[None], targets.depth_mask[None])
     cfg = dataclasses.replace(SaladConfig(camera=CAMERA), row_shift=tuple(shift),

@@ -118,7 +118,8 @@ def bench_camera() -> dict[str, float | str]:
 def _bench_camera(sample: CameraLaneSample) -> dict[str, float | str]:
     with tempfile.TemporaryDirectory() as folder:
         checkpoint, weights = _weights(sample, Path(folder))
-        detector = load_camera_detector(str(checkpoint), flip_average=FLIP_AVERAGE)
+        params = CameraParams(checkpoint=str(checkpoint), flip_average=FLIP_AVERAGE)
+        detector = load_camera_detector(params)
     cfg = detector.cfg
     image, k = sample.image, sample.intrinsics
     warp_ms = time_median(lambda: cfg.camera.warp(image, k), repeats=REPEATS)
@@ -136,7 +137,7 @@ def _bench_camera(sample: CameraLaneSample) -> dict[str, float | str]:
     jpeg_ms = time_median(lambda: msg_to_image(jpeg), repeats=REPEATS)
     bayer = image_to_msg(family, family.header(0, 'camera'), image, 'bayer_rggb8')
     bayer_ms = time_median(lambda: msg_to_image(bayer), repeats=REPEATS)
-    pipeline = CameraPipeline(CameraParams(flip_average=FLIP_AVERAGE), detector)
+    pipeline = CameraPipeline(params, detector)
     pipeline.receive_camera_info(camera_info_msg(family, family.header(0, 'camera'), *SIZE, k))
     msg = image_to_msg(family, family.header(0, 'camera'), image)
     e2e, lanes = [], []

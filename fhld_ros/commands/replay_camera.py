@@ -36,9 +36,7 @@ def replay_camera(in_bag: Path, out_bag: Path, params: CameraParams,
     counts = topic_counts(in_bag)
     image_topic = images_in(counts, image_topic, params.image_transport, progress)
     require_topics(in_bag, counts, (image_topic, camera_info_topic))
-    pipeline = CameraPipeline(params, load_camera_detector(
-        params.checkpoint, params.model_threads, params.model_runtime, params.flip_average,
-        params.road_profile))
+    pipeline = CameraPipeline(params, load_camera_detector(params))
     if pipeline.mount_warning:
         print(f'warning: {pipeline.mount_warning}', file=sys.stderr)
     lanes_topic = '/' + params.lanes_topic.strip('/')

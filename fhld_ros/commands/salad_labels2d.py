@@ -88,8 +88,8 @@ def write_pseudo_labels(in_bag: Path, out_dir: Path, min_score: float = DEFAULT_
     require_topics(in_bag, counts, (image_topic, camera_info_topic))
     # every image is detected (rate_hz at its maximum); the lanes are taken from the detector
     # itself (optical frame, all scores), filtered here by min_score
-    pipeline = CameraPipeline(dataclasses.replace(CameraParams(), rate_hz=1000.0),
-                              load_camera_detector(checkpoint))
+    params = dataclasses.replace(CameraParams(), rate_hz=1000.0, checkpoint=checkpoint)
+    pipeline = CameraPipeline(params, load_camera_detector(params))
     found = {'images': 0, 'labelled': 0, 'labels': 0}
     for _ in feed_camera(pipeline, in_bag, counts, image_topic, camera_info_topic,
                          'salad-labels2d', progress):

@@ -93,10 +93,7 @@ class CameraLaneDetectorNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__(NODE_NAME, **kwargs)
         self.params = declare_params(self, CameraParams)
-        self.pipeline = CameraPipeline(
-            self.params, load_camera_detector(
-                self.params.checkpoint, self.params.model_threads, self.params.model_runtime,
-                self.params.flip_average, self.params.road_profile))
+        self.pipeline = CameraPipeline(self.params, load_camera_detector(self.params))
         self.get_logger().info(f'parameters: {self.params}')
         if self.pipeline.mount_warning:
             self.get_logger().warning(self.pipeline.mount_warning)

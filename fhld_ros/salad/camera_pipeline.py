@@ -110,15 +110,14 @@ class ImageIntake:
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
-def load_camera_detector(checkpoint: str = '', threads: int = 0, runtime: str = 'auto',
-                         flip_average: bool = False, road_profile: bool = True
-                         ) -> SaladDetector:
-    """SaladDetector of `checkpoint` ('' = the shipped weights) on `threads` CPU threads
-    (0: auto, SaladDetector), `runtime`, `flip_average` and `road_profile`; ConfigError
-    naming the file when it is missing or unusable."""
+def load_camera_detector(params: CameraParams) -> SaladDetector:
+    """SaladDetector as the parameters ask: their checkpoint ('' = the shipped weights),
+    model_threads, model_runtime, flip_average and road_profile; ConfigError naming the file
+    when it is missing or unusable."""
+    checkpoint = params.checkpoint
     try:
-        return SaladDetector(checkpoint or DEFAULT_SALAD_CHECKPOINT, threads, runtime,
-                             flip_average, road_profile)
+        return SaladDetector(checkpoint or DEFAULT_SALAD_CHECKPOINT, params.model_threads,
+                             params.model_runtime, params.flip_average, params.road_profile)
     except ConfigError as exc:
         if checkpoint:
             raise
