@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 import pytest
+import torch
 
 from fhld_ros.cli import main
 from fhld_ros.salad import train
@@ -120,3 +121,18 @@ def test_weights_train_on_a_wider_view_and_a_cache_keeps_its_width(tmp_path, cap
     assert main(['salad-train', str(out), '--drives', '1', '--frames', '1', '--steps', '2',
                  '--resume', '--camera-width', '480']) == 2
     assert 'a resumed run keeps its camera (640 px wide)' in capsys.readouterr().err
+
+
+def test_bfloat16_training_moves_float32_weights(tmp_path):
+    out = tmp_path / 'run'
+    assert main(['salad-train', str(out), '--drives', '1', '--frames', '1', '--steps', '2',
+                 '--batch', '1', '--workers', '0', '--threads', '1', '--bf16',
+                 '--init', str(DEFAULT_SALAD_CHECKPOINT)]) == 0
+    tuned, info = load_salad(out / 'salad.pt')
+    shipped, _ = load_salad(DEFAULT_SALAD_CHECKPOINT)
+    assert info['meta']['bf16'] is True and info['meta']['steps'] == 2
+    weights = tuned.state_dict()
+    assert all(w.dtype == torch.float32 for w in weights.values() if w.is_floating_point())
+    assert all(torch.isfinite(w).all() for w in weights.values() if w.is_floating_point())
+    assert any(not torch.equal(a, b) for a, b in zip(weights.values(),
+                                                     shipped.state_dict().values()))
