@@ -314,7 +314,7 @@ def _train(args: argparse.Namespace, model: SaladNet, optimiser: torch.optim.Opt
         batch = {k: v.to(args.device) for k, v in batch.items()}
         images = (augment_images(batch['image'], batch['augment'], model.cfg.camera)
                   if dataset.defer_images else batch['image'])
-        with torch.autocast('cuda' if on_gpu else 'cpu', torch.bfloat16, enabled=args.bf16):
+        with torch.autocast(images.device.type, torch.bfloat16, enabled=args.bf16):
             seg, spatial = model(images)
         losses = criterion(seg.float(), spatial.float(), batch)
         optimiser.zero_grad(set_to_none=True)
