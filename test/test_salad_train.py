@@ -98,9 +98,12 @@ def test_drives_for_a_users_mount_are_rendered_and_named_apart(tmp_path):
 
 
 def test_weights_train_on_a_wider_view_and_a_cache_keeps_its_width(tmp_path, capsys):
-    out, narrow = tmp_path / 'run', DEFAULT_SALAD_CHECKPOINT.with_name('salad_wide_mount.pt')
-    run = ['salad-train', str(out), '--drives', '1', '--frames', '1', '--steps', '1',
-           '--batch', '1', '--workers', '0', '--threads', '1', '--init', str(narrow)]
+    out, narrow = tmp_path / 'run', tmp_path / 'narrow'
+    tiny = ['--drives', '1', '--frames', '1', '--steps', '1', '--batch', '1', '--workers', '0',
+            '--threads', '1']
+    assert main(['salad-train', str(narrow), *tiny, '--camera-width', '480']) == 0
+    narrow = narrow / 'salad.pt'
+    run = ['salad-train', str(out), *tiny, '--init', str(narrow)]
     assert main([*run, '--camera-width', '640']) == 0
     before = load_salad(narrow)[0].cfg
     model = load_salad(out / 'salad.pt')[0]
