@@ -24,8 +24,6 @@ _YUV422 = {'yuv422': (1, 0, 3, 2), 'uyvy': (1, 0, 3, 2), 'yuv422_yuy2': (0, 1, 2
 # what image_transport's compressed plugin writes; 'compressedDepth' is depth, not an image
 _COMPRESSED_FORMATS = ('JPEG', 'PNG', 'TIFF')
 _COLOUR_MODES = ('1', 'L', 'LA', 'P', 'PA', 'RGB', 'RGBA', 'RGBX', 'CMYK', 'YCbCr')
-# models whose first five coefficients are plumb_bob's (rational_polynomial adds k4..k6)
-_PLUMB_BOB_LIKE = ('plumb_bob', 'rational_polynomial', '')
 
 
 def image_to_msg(family: MessageFamily, header: Any, rgb: np.ndarray,
@@ -132,14 +130,15 @@ def _as_bytes(data: Any) -> Any:
 
 
 def camera_info_msg(family: MessageFamily, header: Any, width: int, height: int,
-                    K: np.ndarray, D: np.ndarray | None = None) -> Any:
-    """sensor_msgs/CameraInfo of a pinhole camera: plumb_bob d = [k1, k2, p1, p2, k3], k row-major,
-    p = [K | 0], r = identity (a monocular camera)."""
+                    K: np.ndarray, D: np.ndarray | None = None, model: str = 'plumb_bob'
+                    ) -> Any:
+    """sensor_msgs/CameraInfo of a camera: its lens `model`'s d (plumb_bob: [k1, k2, p1, p2,
+    k3]), k row-major, p = [K | 0], r = identity (a monocular camera)."""
     K = np.asarray(K, dtype=np.float64).reshape(3, 3)
     d = np.zeros(5) if D is None else np.asarray(D, dtype=np.float64).ravel()
     p = np.concatenate([K, np.zeros((3, 1))], axis=1)
     return family.new('sensor_msgs/msg/CameraInfo', header=header, height=int(height),
-                      width=int(width), distortion_model='plumb_bob',
+                      width=int(width), distortion_model=model,
                       d=_float_field(family, d), k=_float_field(family, K.ravel()),
                       r=_float_field(family, np.eye(3).ravel()),
                       p=_float_field(family, p.ravel()))
@@ -151,34 +150,20 @@ def _float_field(family: MessageFamily, values: np.ndarray) -> Any:
 
 
 def camera_info_values(msg: Any, rectified: bool = False
-                       ) -> tuple[int, int, np.ndarray, np.ndarray, str]:
-    """sensor_msgs/CameraInfo -> (width, height, K (3, 3), D (the message's d as given, e.g.
-    (5,) or empty), frame_id) of the images it comes with: a binned or region-of-interest
+                       ) -> tuple[int, int, np.ndarray, str, np.ndarray, str]:
+    """sensor_msgs/CameraInfo -> (width, height, K (3, 3), distortion_model, d (as given,
+    e.g. (5,) or empty), frame_id) of the images it comes with: a binned or region-of-interest
     camera's (binning_x/y, roi; camera_info describes the full sensor) has its image size and
-    K made those of its images. ValueError for a distortion model that is not plumb_bob
-    (rational_polynomial is accepted when its k4..k6 are zero) or a roi outside the sensor.
-    For rectified images (image_proc's image_rect) the intrinsics are P's left 3x3 and D is
-    empty, whatever lens the raw image came through."""
+    K made those of its images. ValueError for a roi outside the sensor. For rectified images
+    (image_proc's image_rect) the intrinsics are P's left 3x3 and d is empty, whatever lens
+    the raw image came through."""
     if rectified:
         K, d = np.asarray(list(msg.p), dtype=np.float64).reshape(3, 4)[:, :3].copy(), np.zeros(0)
     else:
-        K, d = np.asarray(list(msg.k), dtype=np.float64).reshape(3, 3), _plumb_bob_d(msg)
+        K = np.asarray(list(msg.k), dtype=np.float64).reshape(3, 3)
+        d = np.asarray(list(msg.d), dtype=np.float64)
     width, height, K = _binned(msg, K)
-    return width, height, K, d, str(msg.header.frame_id)
-
-
-def _plumb_bob_d(msg: Any) -> np.ndarray:
-    model = str(msg.distortion_model)
-    d = np.asarray(list(msg.d), dtype=np.float64)
-    if model not in _PLUMB_BOB_LIKE and np.any(d):
-        raise ValueError(f'camera_info distortion_model {model!r} is not supported '
-                         '(plumb_bob only)')
-    if model == 'rational_polynomial' and d.size > 5:
-        if np.any(d[5:]):
-            raise ValueError('camera_info distortion_model rational_polynomial has non-zero '
-                             'k4..k6 (plumb_bob only)')
-        d = d[:5]
-    return d
+    return width, height, K, str(msg.distortion_model), d, str(msg.header.frame_id)
 
 
 def _binned(msg: Any, K: np.ndarray) -> tuple[int, int, np.ndarray]:

@@ -27,6 +27,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from fhld_ros.bagio import BagWriter, read_raw
 from fhld_ros.camera.calibration import distort
+from fhld_ros.camera.lens import Lens
 from fhld_ros.commands.replay_camera import CAMERA_INFO_TOPIC, IMAGE_TOPIC, replay_camera
 from fhld_ros.lane_output import LANE_TOPICS
 from fhld_ros.salad.camera_pipeline import (
@@ -246,8 +247,8 @@ def _image(stamp_ns: int, width: int = 960, height: int = 540, frame: str = 'cam
 
 
 def _info(k: np.ndarray = K, width: int = 960, height: int = 540,
-          d: np.ndarray | None = None):
-    return camera_info_msg(FAMILY, FAMILY.header(0, 'camera'), width, height, k, d)
+          d: np.ndarray | None = None, model: str = 'plumb_bob'):
+    return camera_info_msg(FAMILY, FAMILY.header(0, 'camera'), width, height, k, d, model)
 
 
 def test_a_distorted_camera_s_distortion_reaches_the_detector():
@@ -258,7 +259,7 @@ def test_a_distorted_camera_s_distortion_reaches_the_detector():
         assert pipeline.receive_image(_image(len(pipeline.detector.distortions) * 10**8)).due
         assert pipeline.detect() is not None
     undistorted, distorted = pipeline.detector.distortions
-    assert undistorted is None and np.array_equal(distorted, d)
+    assert undistorted is None and distorted == Lens('plumb_bob', tuple(d))
 
 
 def test_lanes_come_out_in_the_output_frame_with_ego_lanes_and_the_seen_ground():
@@ -293,20 +294,38 @@ def test_lanes_come_out_in_the_output_frame_with_ego_lanes_and_the_seen_ground()
     np.testing.assert_array_equal(flu[0], flu[4])
 
 
+def test_a_fisheye_or_rational_lens_reaches_the_detector_and_other_models_are_named():
+    pipeline = CameraPipeline(CameraParams(), RoadDetector())
+    for model, d in (('equidistant', [-0.05, 0.01, 0.002, -0.001]),
+                     ('rational_polynomial', [0.8, 0.2, 0.001, -0.001, 0.01, 1.2, 0.4, 0.03])):
+        assert pipeline.receive_camera_info(_info(d=np.array(d), model=model)) is None
+        assert pipeline.receive_image(_image(len(pipeline.detector.distortions) * 10**8)).due
+        assert pipeline.detect() is not None
+        assert pipeline.detector.distortions[-1] == Lens(model, tuple(d))
+    text, _ = distortion_notice('camera/image_raw', 'camera/camera_info', Lens(model, tuple(d)))
+    assert 'rational_polynomial 0.8, 0.2' in text
+    problems = [str(pipeline.receive_camera_info(_info(d=np.array(d), model=model)))
+                for model, d in (('fov', [0.9]), ('equidistant', [0.1, 0.0, 0.0, 0.0, 0.2]),
+                                 ('plumb_bob', [0.1, np.nan, 0.0, 0.0]))]
+    assert "distortion_model 'fov' is not supported (supported: plumb_bob, " in problems[0]
+    assert 'distortion_model equidistant takes 4 coefficients in d, got 5' in problems[1]
+    assert 'is not finite' in problems[2]
+    assert pipeline.camera is None and pipeline.counters['bad_camera_info'] == 3
+
+
 def test_rectified_images_take_p_and_no_distortion():
     # image_proc's image_rect comes with the raw camera's camera_info: a fisheye's K and D, and
     # P, the intrinsics of the rectified images
-    info = _info(d=np.array([-0.05, 0.01, 0.002, -0.001]))
-    info.distortion_model = 'equidistant'
+    info = _info(d=np.array([-0.05, 0.01, 0.002, -0.001]), model='equidistant')
     P = np.array([[520.0, 0.0, 470.0, 0.0], [0.0, 520.0, 265.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
     info.p = P.ravel()
     raw = CameraPipeline(CameraParams(), RoadDetector())
-    assert "distortion_model 'equidistant' is not supported" in str(raw.receive_camera_info(info))
+    assert raw.receive_camera_info(info) is None and raw.camera.lens.model == 'equidistant'
     rect = CameraPipeline(CameraParams(image_topic='camera/image_rect', image_rectified=True),
                           RoadDetector())
     assert rect.receive_camera_info(info) is None
     np.testing.assert_array_equal(rect.camera.K, P[:, :3])
-    assert not rect.camera.distorted
+    assert rect.camera.lens is None
     assert rect.receive_image(_image(0)).due and rect.detect() is not None
     assert rect.detector.distortions == [None]
     info.p = np.zeros(12)  # a driver that never filled P
@@ -318,7 +337,8 @@ def test_rectified_images_take_p_and_no_distortion():
     ('/front/image_rect/compressed', 'warning'), ('/front/rect_image', 'warning'),
     ('/front/image_rectangle', 'info')])
 def test_distortion_on_a_rectified_looking_topic_is_warned_about(topic: str, level: str):
-    text, said = distortion_notice(topic, '/front/camera_info', np.array([-0.1, 0.01, 0, 0, 0]))
+    text, said = distortion_notice(topic, '/front/camera_info',
+                                   Lens.plumb_bob(np.array([-0.1, 0.01, 0, 0, 0])))
     assert said == level and 'image_rectified:=true' in text and '-0.1, 0.01' in text
 
 

@@ -12,6 +12,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from fhld_ros.camera.calibration import CameraCalibration
+from fhld_ros.camera.lens import Lens
 from fhld_ros.errors import ConfigError
 from fhld_ros.salad.augment import SaladAugment, augment_images, draw, flip
 from fhld_ros.salad.checkpoint import SaladCheckpointError, load_salad, save_salad
@@ -25,6 +26,8 @@ from fhld_ros.salad.perfect_maps import HEADS, PerfectMaps
 from fhld_ros.salad.sample import CameraLaneSample
 from fhld_ros.salad.targets import lane_targets, row_statistics
 from fhld_ros.salad.virtual_camera import VirtualCamera
+from msg_adapters.camera import camera_info_msg, tf_static_msg
+from msg_adapters.family import rosbags_family
 
 CAMERA = VirtualCamera()
 
@@ -79,6 +82,49 @@ def test_a_distorted_camera_s_point_lands_where_a_pinhole_virtual_camera_sees_it
     dark = CAMERA.warp(np.full((200, 320, 3), 255, np.uint8), np.array(
         [[600.0, 0, 160], [0, 600, 100], [0, 0, 1]]), np.array([-0.2, 0.05, 0, 0, 0]))
     assert dark[0, 0].max() == 0 and dark[CAMERA.height // 2, CAMERA.width // 2].min() == 255
+
+
+@pytest.mark.parametrize('lens, k, size', [
+    # a 190-degree fisheye (OpenCV's fisheye model; ROS calls it equidistant)
+    (Lens('equidistant', (-0.013, 0.021, -0.011, 0.002)),
+     np.array([[330.0, 0, 641], [0, 330, 398], [0, 0, 1]]), (1280, 800)),
+    # a wide lens calibrated with OpenCV's rational model (k4..k6 in the denominator)
+    (Lens('rational_polynomial', (0.8, 0.2, 0.001, -0.001, 0.01, 1.2, 0.4, 0.03)),
+     np.array([[720.0, 0, 962], [0, 720, 538], [0, 0, 1]]), (1920, 1080))])
+def test_a_fisheye_or_rational_lens_s_point_lands_where_the_pinhole_virtual_camera_sees_it(
+        lens: Lens, k: np.ndarray, size: tuple[int, int]):
+    points = np.array([[-2.0, 1.5, 10.0], [3.0, 1.5, 6.0], [0.5, 1.2, 30.0], [-6.0, 1.6, 8.0]])
+    x, y = points[:, 0] / points[:, 2], points[:, 1] / points[:, 2]
+    xd, yd = lens.distort(x, y)
+    back = np.column_stack(lens.undistort(xd, yd))
+    np.testing.assert_allclose(back, np.column_stack([x, y]), atol=1e-6)  # < 0.001 px
+    pixels = np.column_stack([k[0, 0] * xd + k[0, 2], k[1, 1] * yd + k[1, 2]])
+    for point, uv in zip(points, pixels):
+        image = _dot(size, uv, sigma=0.006 * k[0, 0])
+        want = _project(CAMERA.intrinsics, point)
+        np.testing.assert_allclose(_peak(CAMERA.warp(image, k, lens)), want, atol=0.3)
+        if point[0] == 3.0:  # 27 deg off the axis: a pinhole's K alone misses it
+            assert np.abs(_peak(CAMERA.warp(image, k)) - want).max() > 5.0
+
+
+def test_a_fisheye_s_pixels_undistort_to_rays_up_to_its_edge_and_autolabel_names_it():
+    lens = Lens('equidistant', (-0.013, 0.021, -0.011, 0.002))
+    # 85 degrees off the axis: a pinhole's normalised radius of 11.4, still one-to-one
+    theta = np.radians([10.0, 45.0, 85.0])
+    xd, _ = lens.distort(np.tan(theta), np.zeros(3))
+    np.testing.assert_allclose(lens.undistort(xd, np.zeros(3))[0], np.tan(theta), rtol=1e-9)
+    assert lens.unfolded(np.tan(theta), np.zeros(3), 1.0).all()
+    # a lens whose radius turns back at ~40 degrees is cut there, not folded into the image
+    folding = Lens('equidistant', (-1.0, 0.0, 0.0, 0.0))
+    assert list(folding.unfolded(np.tan(np.radians([30.0, 45.0])), np.zeros(2), 1.0)) == \
+        [True, False]
+    info = camera_info_msg(rosbags_family(), rosbags_family().header(0, 'camera'), 1280, 800,
+                           np.array([[330.0, 0, 641], [0, 330, 398], [0, 0, 1]]),
+                           np.array(lens.coefficients), 'equidistant')
+    tf = tf_static_msg(rosbags_family(), 0, 'lidar', 'camera', np.eye(4))
+    with pytest.raises(ConfigError, match='lens equidistant -0.013, 0.021, -0.011, 0.002: '
+                       'projecting LiDAR points takes plumb_bob'):
+        CameraCalibration.from_messages(info, [tf], 'lidar')
 
 
 def test_flip_and_zoom_move_the_image_and_the_3d_lane_alike():

@@ -237,8 +237,8 @@ def test_image_and_camera_info_messages_round_trip(family) -> None:
     assert info.distortion_model == 'plumb_bob'
     assert np.allclose(np.asarray(info.p).reshape(3, 4)[:, :3], K)
     assert np.allclose(np.asarray(info.r), np.eye(3).ravel())
-    width, height, K2, D2, frame = camera_info_values(info)
-    assert (width, height, frame) == (960, 600, 'camera')
+    width, height, K2, model, D2, frame = camera_info_values(info)
+    assert (width, height, model, frame) == (960, 600, 'plumb_bob', 'camera')
     assert np.allclose(K2, K) and np.allclose(D2, D)
 
 

@@ -14,11 +14,11 @@ from typing import Any
 import numpy as np
 import yaml
 
+from fhld_ros.camera.lens import PLUMB_BOB, RATIONAL, Lens, as_lens
 from fhld_ros.errors import ConfigError
 from msg_adapters.camera import camera_info_values, tf_transforms
 
 MIN_DEPTH_M = 0.1  # points nearer the image plane than this are not projected
-UNDISTORT_STEPS = 10
 BORDER_SAMPLES = 65  # points per image side where seen_box undistorts the border
 
 
@@ -121,7 +121,7 @@ class CameraCalibration:
                       ) -> CameraCalibration:
         """From a CameraInfo and the /tf_static messages: the transform may be stored either
         way round between the cloud frame and the camera_info's frame."""
-        width, height, K, D, camera_frame = camera_info_values(camera_info)
+        width, height, K, model, D, camera_frame = camera_info_values(camera_info)
         if not camera_frame:
             raise ConfigError('/camera/camera_info has an empty frame_id')
         T_camera_cloud = None
@@ -134,14 +134,15 @@ class CameraCalibration:
         if T_camera_cloud is None:
             raise ConfigError(f'no /tf_static transform between {cloud_frame} (the clouds) and '
                               f'{camera_frame} (the camera); give --calib YAML')
-        D = np.asarray(D, dtype=np.float64).ravel()
-        if D.size > 5 and np.any(D[5:]):
-            raise ConfigError('/camera/camera_info: distortion beyond plumb_bob (k4..k6) is not '
-                              'supported; give an undistorted camera or --calib YAML')
         try:
-            d = _distortion(D[:5])
+            lens = Lens.from_camera_info(model, D)
         except ValueError as exc:
             raise ConfigError(f'/camera/camera_info: {exc}') from exc
+        if lens is not None and (lens.model not in (PLUMB_BOB, RATIONAL) or
+                                 any(lens.coefficients[5:])):
+            raise ConfigError(f'/camera/camera_info: lens {lens}: projecting LiDAR points takes '
+                              'plumb_bob distortion; give an undistorted camera or --calib YAML')
+        d = np.zeros(5) if lens is None else np.array(lens.coefficients[:5])
         return cls(int(width), int(height), np.asarray(K, dtype=np.float64).reshape(3, 3), d,
                    T_camera_cloud, camera_frame, cloud_frame)
 
@@ -155,61 +156,48 @@ def corner_r2(width: int, height: int, K: np.ndarray) -> float:
     return float(np.max(x * x + y * y))
 
 
-def plumb_bob(D: np.ndarray) -> np.ndarray:
-    """k1 k2 p1 p2 k3 of D, k3 = 0 where D gives four (as many calibrations do)."""
-    return np.append(np.asarray(D, dtype=np.float64).ravel(), np.zeros(5))[:5]
-
-
-def undistort(uv: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndarray:
+def undistort(uv: np.ndarray, K: np.ndarray, D: Lens | np.ndarray | None) -> np.ndarray:
     """(N, 2) pixels -> (N, 2) normalised image coordinates (z = 1) of the pinhole camera they
-    show (plumb_bob D undone by fixed-point iteration, as OpenCV's undistortPoints does)."""
+    show, the lens (a Lens or a plumb_bob D) undone."""
     y = (uv[:, 1] - K[1, 2]) / K[1, 1]
     x = (uv[:, 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
-    if np.any(D):
-        k1, k2, p1, p2, k3 = plumb_bob(D)
-        xd, yd = x, y
-        for _ in range(UNDISTORT_STEPS):
-            r2 = x * x + y * y
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            x = (xd - 2 * p1 * x * y - p2 * (r2 + 2 * x * x)) / radial
-            y = (yd - p1 * (r2 + 2 * y * y) - 2 * p2 * x * y) / radial
+    lens = as_lens(D)
+    if lens is not None:
+        x, y = lens.undistort(x, y)
     return np.column_stack([x, y])
 
 
-def seen_box(width: int, height: int, K: np.ndarray, D: np.ndarray) -> tuple[np.ndarray,
-                                                                               np.ndarray]:
+def seen_box(width: int, height: int, K: np.ndarray, D: Lens | np.ndarray | None
+             ) -> tuple[np.ndarray, np.ndarray]:
     """(low, high): the axis-aligned box of normalised image coordinates (z = 1) inside what
     a width x height image sees; the image itself without distortion. A lens bends the image's
     border in those coordinates (outwards between the corners for a barrel lens, inwards for a
     pincushion one), so each side of the box is where that border side comes nearest the
     centre. Cached per camera: the camera node asks for every image."""
     x0, y0, x1, y1 = _seen_box(int(width), int(height),
-                               tuple(np.asarray(K, dtype=np.float64).ravel()),
-                               tuple(plumb_bob(D)))
+                               tuple(np.asarray(K, dtype=np.float64).ravel()), as_lens(D))
     return np.array([x0, y0]), np.array([x1, y1])
 
 
 @lru_cache(maxsize=16)
-def _seen_box(width: int, height: int, k: tuple[float, ...], d: tuple[float, ...]
+def _seen_box(width: int, height: int, k: tuple[float, ...], lens: Lens | None
               ) -> tuple[float, float, float, float]:
-    K, D = np.asarray(k).reshape(3, 3), np.asarray(d)
+    K = np.asarray(k).reshape(3, 3)
     t = np.linspace(0.0, 1.0, BORDER_SAMPLES)
     one, zero = np.ones_like(t), np.zeros_like(t)
     sides = [np.column_stack(uv) for uv in ((zero, t * height), (one * width, t * height),
                                             (t * width, zero), (t * width, one * height))]
-    left, right, top, bottom = (undistort(side, K, D) for side in sides)
+    left, right, top, bottom = (undistort(side, K, lens) for side in sides)
     return (float(left[:, 0].max()), float(top[:, 1].max()), float(right[:, 0].min()),
             float(bottom[:, 1].min()))
 
 
-def distort(x: np.ndarray, y: np.ndarray, D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Normalised image coordinates (z = 1) of a pinhole camera -> where plumb_bob distortion
-    D (plumb_bob()) puts them (OpenCV's model)."""
-    k1, k2, p1, p2, k3 = plumb_bob(D)
-    r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    return (x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
-            y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)
+def distort(x: np.ndarray, y: np.ndarray, D: Lens | np.ndarray | None
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised image coordinates (z = 1) of a pinhole camera -> where the lens (a Lens or a
+    plumb_bob D) puts them."""
+    lens = as_lens(D)
+    return (x, y) if lens is None else lens.distort(x, y)
 
 
 def _distortion(values: Any) -> np.ndarray:

@@ -70,9 +70,9 @@ def feed_camera(pipeline: CameraPipeline, in_bag: Path, counts: dict[str, int],
             if topic == camera_info_topic:
                 problem = pipeline.receive_camera_info(msg)
                 camera = pipeline.camera
-                if problem is None and camera.distorted and not said_distorted:
+                if problem is None and camera.lens is not None and not said_distorted:
                     said_distorted = True
-                    text, level = distortion_notice(image_topic, camera_info_topic, camera.D)
+                    text, level = distortion_notice(image_topic, camera_info_topic, camera.lens)
                     if level == 'warning':
                         bar.write(f'warning: {text}', file=sys.stderr)
             else:

@@ -60,7 +60,7 @@ def image_labels(image: CameraImage, lanes: list[np.ndarray], scores: np.ndarray
     for lane, score in zip(lanes, scores):
         if score < min_score:
             continue
-        uv = project(lane, image.camera.K, image.camera.D)
+        uv = project(lane, image.camera.K, image.camera.lens)
         uv = uv[(uv[:, 0] >= 0) & (uv[:, 0] <= width - 1) & (uv[:, 1] >= 0)
                 & (uv[:, 1] <= height - 1)]
         if len(uv) >= 2 and np.ptp(uv, axis=0).max() >= MIN_LABEL_PX:
@@ -97,7 +97,7 @@ def write_pseudo_labels(in_bag: Path, out_dir: Path, min_score: float = DEFAULT_
         if image is None:
             continue
         labels = image_labels(image, *pipeline.detector(
-            image.rgb, image.camera.K, distortion=image.camera.D), min_score)
+            image.rgb, image.camera.K, distortion=image.camera.lens), min_score)
         out_dir.mkdir(parents=True, exist_ok=True)
         path = label_path(out_dir, image.stamp_ns)
         check_file_output(path, overwrite, {'IN_BAG': in_bag}, 'OUT_DIR')

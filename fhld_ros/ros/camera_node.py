@@ -159,10 +159,10 @@ class CameraLaneDetectorNode(Node):
             problem, camera = exc, None
         if problem is not None:
             self._drop('bad_camera_info', problem)
-        elif camera is not None and camera.distorted and not self.said_distorted:
+        elif camera is not None and camera.lens is not None and not self.said_distorted:
             self.said_distorted = True
             text, log = distortion_notice(self.params.image_topic, self.params.camera_info_topic,
-                                          camera.D)
+                                          camera.lens)
             getattr(self.get_logger(), log)(text)
 
     def on_image(self, msg: Image) -> None:

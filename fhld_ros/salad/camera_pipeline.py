@@ -32,6 +32,7 @@ import numpy as np
 
 from fhld_ros.annotation.footprint import camera_footprint, ground_plane
 from fhld_ros.camera.calibration import CameraCalibration, seen_box
+from fhld_ros.camera.lens import Lens
 from fhld_ros.errors import ConfigError
 from fhld_ros.lane_output import LaneIdTracker, LaneOutput, ego_lane_bounds
 from fhld_ros.pipeline import DUE_FRACTION
@@ -69,23 +70,20 @@ class CameraLaneDetector(Protocol):
     timings_ms: dict[str, float]
 
     def __call__(self, image: np.ndarray, intrinsics: np.ndarray, road: RoadPlane | None = None,
-                 distortion: np.ndarray | None = None
+                 distortion: Lens | np.ndarray | None = None
                  ) -> tuple[list[np.ndarray], np.ndarray]: ...
 
 
 @dataclass(frozen=True)
 class CameraIntrinsics:
-    """The newest good camera_info: the image size it describes, K, D and its frame."""
+    """The newest good camera_info: the image size it describes, K, its lens distortion (None:
+    none) and its frame."""
 
     width: int
     height: int
     K: np.ndarray
-    D: np.ndarray
+    lens: Lens | None
     frame_id: str
-
-    @property
-    def distorted(self) -> bool:
-        return bool(np.any(self.D))
 
 
 @dataclass
@@ -154,13 +152,13 @@ def mount_warning(info: dict[str, Any], road: RoadPlane | None) -> str | None:
             f'as if it were within that range; use {advice}')
 
 
-def distortion_notice(image_topic: str, camera_info_topic: str, D: np.ndarray
+def distortion_notice(image_topic: str, camera_info_topic: str, lens: Lens
                       ) -> tuple[str, str]:
     """(text, 'info' or 'warning') said once when camera_info has lens distortion: removed from
     each image; a warning when the image topic's name says its images are rectified already
     (they would be undistorted twice)."""
-    text = (f'{camera_info_topic} has lens distortion (plumb_bob '
-            f'{", ".join(f"{c:.4g}" for c in D)}): removed from each image as it is resampled')
+    text = (f'{camera_info_topic} has lens distortion ({lens}): removed from each image as it '
+            'is resampled')
     names = [n for n in image_topic.split('/') if n and n != 'compressed']
     if names and RECTIFIED_NAME.search(names[-1]):
         return (f'{text}; {image_topic} looks rectified already: if it is, set '
@@ -173,12 +171,12 @@ def check_camera_info(msg: Any, rectified: bool = False) -> CameraIntrinsics:
     """camera_info -> CameraIntrinsics; ValueError naming the problem (distortion model, an
     image size or K that no camera has: K all zero is an uncalibrated camera's). Rectified
     images take P's left 3x3 for K and no distortion (camera_info_values)."""
-    width, height, K, D, frame_id = camera_info_values(msg, rectified)
+    width, height, K, model, d, frame_id = camera_info_values(msg, rectified)
     name = 'P' if rectified else 'K'
     if width <= 0 or height <= 0:
         raise ValueError(f'camera_info size {width}x{height} is not positive')
-    if not np.all(np.isfinite(K)) or not np.all(np.isfinite(D)):
-        raise ValueError(f'camera_info {name} or D is not finite')
+    if not np.all(np.isfinite(K)):
+        raise ValueError(f'camera_info {name} is not finite')
     if not np.any(K):
         raise ValueError(f'camera_info {name} is all zero (an uncalibrated camera)')
     if K[0, 0] <= 0 or K[1, 1] <= 0:
@@ -187,7 +185,12 @@ def check_camera_info(msg: Any, rectified: bool = False) -> CameraIntrinsics:
     if abs(K[0, 1]) > 1e-6 * K[0, 0] or np.any(K[2] != [0.0, 0.0, 1.0]) or K[1, 0] != 0:
         raise ValueError(f'camera_info {name} is not a pinhole without skew ([fx 0 cx; 0 fy '
                          'cy; 0 0 1])')
-    return CameraIntrinsics(width, height, K, D, frame_id)
+    try:
+        lens = Lens.from_camera_info(model, d)
+    except ValueError as exc:
+        raise ValueError(f'camera_info {exc} (rectified images: image_rectified:=true)'
+                         ) from None
+    return CameraIntrinsics(width, height, K, lens, frame_id)
 
 
 def seen_region(camera: CameraIntrinsics, virtual: VirtualCamera) -> CameraCalibration | None:
@@ -195,7 +198,7 @@ def seen_region(camera: CameraIntrinsics, virtual: VirtualCamera) -> CameraCalib
     camera it is resampled to overlap) as a pinhole camera of its own, whose image corners are
     that part's corners; None when they do not overlap."""
     f = virtual.focal
-    seen_low, seen_high = seen_box(camera.width, camera.height, camera.K, camera.D)
+    seen_low, seen_high = seen_box(camera.width, camera.height, camera.K, camera.lens)
     low = np.maximum(seen_low, [-virtual.cx / f, -virtual.cy / f])
     high = np.minimum(seen_high, [(virtual.width - virtual.cx) / f,
                                   (virtual.height - virtual.cy) / f])
@@ -329,7 +332,7 @@ class CameraPipeline:
     def detect_image(self, image: CameraImage) -> LaneOutput:
         """SALAD on one image; lanes above score_threshold, in the output frame."""
         lanes_optical, scores = self.detector(image.rgb, image.camera.K, self.road,
-                                              image.camera.D if image.camera.distorted else None)
+                                              image.camera.lens)
         start = time.perf_counter()
         keep = [i for i, score in enumerate(scores) if score >= self.params.score_threshold]
         confidences = np.asarray(scores, dtype=np.float64)[keep]

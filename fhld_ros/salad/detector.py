@@ -18,6 +18,7 @@ import time
 import numpy as np
 import torch
 
+from fhld_ros.camera.lens import Lens
 from fhld_ros.errors import ConfigError
 from fhld_ros.model.inference import serving_graph
 from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT, load_salad
@@ -56,9 +57,9 @@ class SaladDetector:
 
     @torch.inference_mode()
     def maps(self, image: np.ndarray, intrinsics: np.ndarray,
-             distortion: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """The network's maps of one image (its plumb_bob distortion, if any, removed by the
-        warp): lane probability (h, w) and spatial (3, h, w)."""
+             distortion: Lens | np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The network's maps of one image (its lens distortion, if any, removed by the warp):
+        lane probability (h, w) and spatial (3, h, w)."""
         start = time.perf_counter()
         x = self.batch(self.cfg.camera.warp(np.asarray(image), np.asarray(intrinsics),
                                             distortion))
@@ -82,10 +83,11 @@ class SaladDetector:
         return torch.cat([x, x.flip(-1)]) if self.flip_average else x
 
     def __call__(self, image: np.ndarray, intrinsics: np.ndarray, road: RoadPlane | None = None,
-                 distortion: np.ndarray | None = None) -> tuple[list[np.ndarray], np.ndarray]:
+                 distortion: Lens | np.ndarray | None = None
+                 ) -> tuple[list[np.ndarray], np.ndarray]:
         """Lanes ((N, 3) optical frame, metres, near to far) and their scores; road: the road
-        under the camera where its mount is known (road_plane.py); distortion: the image's
-        plumb_bob coefficients, if any."""
+        under the camera where its mount is known (road_plane.py); distortion: the image's lens
+        (a Lens, or plumb_bob coefficients), if any."""
         prob, spatial = self.maps(image, intrinsics, distortion)
         start = time.perf_counter()
         lanes, scores = decode(prob, spatial, self.cfg, road, self.road_profile)

@@ -8,19 +8,19 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from fhld_ros.camera.calibration import distort
+from fhld_ros.camera.lens import Lens
 
 MIN_DEPTH_M = 0.5
 PRED_COLOUR = (230, 40, 40)
 GT_COLOUR = (40, 220, 60)
 
 
-def project(lane: np.ndarray, k: np.ndarray, distortion: np.ndarray | None = None
+def project(lane: np.ndarray, k: np.ndarray, distortion: Lens | np.ndarray | None = None
             ) -> np.ndarray:
     """(M, 2) pixels of the lane's points in front of the camera (optical frame)."""
     pts = lane[lane[:, 2] > MIN_DEPTH_M]
     x, y = pts[:, 0] / pts[:, 2], pts[:, 1] / pts[:, 2]
-    if distortion is not None and np.any(distortion):
-        x, y = distort(x, y, distortion)
+    x, y = distort(x, y, distortion)
     return np.column_stack([k[0, 0] * x + k[0, 1] * y + k[0, 2], k[1, 1] * y + k[1, 2]])
 
 

@@ -24,7 +24,8 @@ class CameraParams:
     image_topic: str = documented(
         'camera/image_raw', 'input sensor_msgs/Image topic (rgb8, bgr8, rgba8, bgra8, mono8, '
         'yuv422, yuv422_yuy2, or an 8-bit Bayer mosaic: bayer_rggb8, bayer_bggr8, bayer_gbrg8, '
-        "bayer_grbg8); camera_info's plumb_bob lens distortion is removed from it",
+        "bayer_grbg8); camera_info's lens distortion (plumb_bob, rational_polynomial, "
+        'equidistant) is removed from it',
         length='[1, inf)')
     image_transport: str = documented(
         'raw', "'raw': sensor_msgs/Image on image_topic; 'compressed': "

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fhld_ros.camera.lens import Lens
 from fhld_ros.salad.road_plane import RoadPlane
 
 
@@ -15,15 +16,15 @@ class CameraLaneSample:
     u = v = 0). lanes: (N, 3) float64 polylines in the camera optical frame (x right, y down, z
     forward, metres), each ordered near to far, only what the image shows. name: where it came
     from (a file, a seed), for messages. road: the road under the camera where its mount is
-    known (the simulator's), for depth up to road.until_m. distortion: the image's plumb_bob
-    lens distortion (k1 k2 p1 p2 [k3]) where it has one (the warp removes it)."""
+    known (the simulator's), for depth up to road.until_m. distortion: the image's lens (a
+    Lens, or plumb_bob's k1 k2 p1 p2 [k3]) where it has one (the warp removes it)."""
 
     image: np.ndarray
     intrinsics: np.ndarray
     lanes: list[np.ndarray] = field(default_factory=list)
     name: str = ''
     road: RoadPlane | None = None
-    distortion: np.ndarray | None = None
+    distortion: Lens | np.ndarray | None = None
 
     def __post_init__(self) -> None:
         image = np.asarray(self.image)

@@ -5,7 +5,8 @@ seen through a 50 or a 90 degree lens gives different depths at the same pixel. 
 from any camera are resampled, ray for ray, to VirtualCamera (same optical frame, square
 pixels, fixed focal length and principal point); 3D lanes in the optical frame stay as they
 are. Resampling is a scale and shift per axis (no skew): one antialiased PIL resize. A camera
-with lens distortion (plumb_bob, as camera_info gives it) is undistorted on the way: the image
+with lens distortion (`camera/lens.py`: plumb_bob, rational_polynomial or equidistant, as
+camera_info gives it) is undistorted on the way: the image
 resized (antialiased) to the virtual focal length, then sampled bilinearly where the distortion
 puts each virtual pixel's ray.
 """
@@ -17,7 +18,8 @@ from functools import lru_cache
 import numpy as np
 from PIL import Image
 
-from fhld_ros.camera.calibration import corner_r2, distort
+from fhld_ros.camera.calibration import corner_r2
+from fhld_ros.camera.lens import Lens, as_lens
 from fhld_ros.compiled import compiled
 from fhld_ros.dataclass_dict import documented
 
@@ -55,16 +57,17 @@ class VirtualCamera:
         return (k[0, 2] + (u - self.cx) * k[0, 0] / self.focal,
                 k[1, 2] + (v - self.cy) * k[1, 1] / self.focal)
 
-    def warp(self, image: np.ndarray, k: np.ndarray, d: np.ndarray | None = None
+    def warp(self, image: np.ndarray, k: np.ndarray, d: Lens | np.ndarray | None = None
              ) -> np.ndarray:
-        """(H, W, 3) uint8 image of intrinsics k and plumb_bob distortion d (k1 k2 p1 p2 [k3];
-        None or zeros: none) -> (height, width, 3) uint8 of this camera; what the source does
-        not cover is black. ValueError for a skewed k."""
+        """(H, W, 3) uint8 image of intrinsics k and lens distortion d (a Lens, or plumb_bob's
+        k1 k2 p1 p2 [k3]; None or zeros: none) -> (height, width, 3) uint8 of this camera; what
+        the source does not cover is black. ValueError for a skewed k."""
         k = np.asarray(k, dtype=np.float64)
         if abs(k[0, 1]) > 1e-6 * k[0, 0]:
             raise ValueError(f'intrinsics with skew {k[0, 1]:g} are not supported')
-        if d is not None and np.any(d):
-            return self._undistort(image, k, np.asarray(d, dtype=np.float64))
+        lens = as_lens(d)
+        if lens is not None:
+            return self._undistort(image, k, lens)
         h, w = image.shape[:2]
         # the virtual pixels whose centres fall inside the source image
         u_source, v_source = self.source_pixels(k, np.arange(self.width),
@@ -85,12 +88,12 @@ class VirtualCamera:
         return out
 
 
-    def _undistort(self, image: np.ndarray, k: np.ndarray, d: np.ndarray) -> np.ndarray:
+    def _undistort(self, image: np.ndarray, k: np.ndarray, lens: Lens) -> np.ndarray:
         """warp() for a distorted camera: the part of the image the virtual camera sees, resized
         (antialiased) to the virtual focal length, then sampled bilinearly at each virtual
         pixel's distorted position."""
         h, w = image.shape[:2]
-        remap = _undistort_map(self, tuple(k.ravel()), tuple(d.ravel()), (w, h))
+        remap = _undistort_map(self, tuple(k.ravel()), lens, (w, h))
         out = np.zeros((self.height * self.width, 3), dtype=np.uint8)
         if remap is not None:
             box, size, u, v = remap
@@ -101,7 +104,7 @@ class VirtualCamera:
 
 
 @lru_cache(maxsize=8)
-def _undistort_map(camera: VirtualCamera, k: tuple[float, ...], d: tuple[float, ...],
+def _undistort_map(camera: VirtualCamera, k: tuple[float, ...], lens: Lens,
                    source: tuple[int, int]
                    ) -> tuple[tuple[int, ...], tuple[int, int], np.ndarray, np.ndarray] | None:
     """(the source box the virtual camera sees, its size resized to the virtual focal length,
@@ -112,9 +115,9 @@ def _undistort_map(camera: VirtualCamera, k: tuple[float, ...], d: tuple[float, 
     w, h = source
     v, u = np.mgrid[0:camera.height, 0:camera.width].reshape(2, -1).astype(np.float64)
     x, y = (u - camera.cx) / camera.focal, (v - camera.cy) / camera.focal
-    xd, yd = distort(x, y, np.asarray(d))
+    xd, yd = lens.distort(x, y)
     su, sv = K[0, 0] * xd + K[0, 2], K[1, 1] * yd + K[1, 2]  # source pixel centres
-    seen = (x * x + y * y < 4.0 * corner_r2(w, h, K)) & (su >= -0.5) & (su <= w - 0.5) & \
+    seen = lens.unfolded(x, y, corner_r2(w, h, K)) & (su >= -0.5) & (su <= w - 0.5) & \
         (sv >= -0.5) & (sv <= h - 0.5)
     if not seen.any():
         return None
