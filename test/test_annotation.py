@@ -58,7 +58,7 @@ def test_calibration_yaml_round_trip_and_one_line_errors(tmp_path):
              '[0,0,1,0],[0,0,0,1]]\n': 'not a rigid transform',
              'width: 1\nheight: 1\nK: [1,2,3]\nT_camera_cloud: 1\n': 'cannot reshape',
              'width: 1\nheight: 1\nK: [1,0,0,0,1,0,0,0,1]\nT_camera_cloud: [[1,0,0,0],[0,1,0,0],'
-             '[0,0,1,0],[0,0,0,1]]\nD: [1, 2]\n': 'D must hold 4 or 5',
+             '[0,0,1,0],[0,0,0,1]]\nD: [1, 2]\n': 'plumb_bob takes 4 to 5 coefficients',
              'width: 1\nheight: 1\nK: [1,0,0,0,1,0,0,0,1]\nT_camera_cloud: [[1,0,0,0],[0,1,0,0],'
              '[0,0,1,0],[0,0,0,1]]\nfx: 3\n': "unknown key 'fx'",
              ': [': 'cannot read it'}

@@ -107,7 +107,7 @@ def test_a_fisheye_or_rational_lens_s_point_lands_where_the_pinhole_virtual_came
             assert np.abs(_peak(CAMERA.warp(image, k)) - want).max() > 5.0
 
 
-def test_a_fisheye_s_pixels_undistort_to_rays_up_to_its_edge_and_autolabel_names_it():
+def test_a_fisheye_s_pixels_undistort_to_rays_up_to_its_edge_and_autolabel_takes_it(tmp_path):
     lens = Lens('equidistant', (-0.013, 0.021, -0.011, 0.002))
     # 85 degrees off the axis: a pinhole's normalised radius of 11.4, still one-to-one
     theta = np.radians([10.0, 45.0, 85.0])
@@ -122,9 +122,19 @@ def test_a_fisheye_s_pixels_undistort_to_rays_up_to_its_edge_and_autolabel_names
                            np.array([[330.0, 0, 641], [0, 330, 398], [0, 0, 1]]),
                            np.array(lens.coefficients), 'equidistant')
     tf = tf_static_msg(rosbags_family(), 0, 'lidar', 'camera', np.eye(4))
-    with pytest.raises(ConfigError, match='lens equidistant -0.013, 0.021, -0.011, 0.002: '
-                       'projecting LiDAR points takes plumb_bob'):
-        CameraCalibration.from_messages(info, [tf], 'lidar')
+    # autolabel's camera from a bag's camera_info, and through its --calib YAML
+    calib = CameraCalibration.from_messages(info, [tf], 'lidar')
+    calib.to_yaml(tmp_path / 'fisheye.yaml')
+    for c in (calib, CameraCalibration.from_yaml(tmp_path / 'fisheye.yaml')):
+        assert c.lens == lens
+        points = np.array([[-8.0, 1.5, 4.0], [0.5, 1.2, 30.0], [9.0, -1.0, 1.0]])  # 66 deg off
+        uv, _, inside = c.project(points)
+        assert inside.all()
+        rays = c.pixel_rays(uv)
+        np.testing.assert_allclose(rays, points / np.linalg.norm(points, axis=1)[:, None],
+                                   atol=1e-6)
+    with pytest.raises(ConfigError, match="distortion_model 'fov' is not one of plumb_bob"):
+        CameraCalibration(1280, 800, calib.K, np.array([0.9]), np.eye(4), distortion_model='fov')
 
 
 def test_flip_and_zoom_move_the_image_and_the_3d_lane_alike():

@@ -43,7 +43,7 @@ def camera_footprint(calib: CameraCalibration, T_out_camera: np.ndarray, normal:
         return None
     w, h = calib.width, calib.height
     # the seen box's corners (optical frame, z = 1), counter-clockwise on the ground ahead
-    (x0, y0), (x1, y1) = seen_box(w, h, calib.K, calib.D)
+    (x0, y0), (x1, y1) = seen_box(w, h, calib.K, calib.lens)
     xy1 = np.array([[x1, y1, 1.0], [x1, y0, 1.0], [x0, y0, 1.0], [x0, y1, 1.0]])
     coef = -(normal @ R)  # g(x, y) = coef . (x, y, 1)
     xy1 = _clip_half_plane(xy1, coef, height / reach_m)

@@ -1,5 +1,6 @@
 """A camera's intrinsics and its pose relative to the LiDAR, and projection of LiDAR points into
-its image (OpenCV's pinhole + plumb_bob model; pixel (0, 0)'s centre is at u = v = 0).
+its image (OpenCV's pinhole model and a lens of `lens.py`; pixel (0, 0)'s centre is at
+u = v = 0).
 
 Read from a bag (`/camera/camera_info` + `/tf_static`) or from a calibration YAML
 (docs/annotation.md, "Calibration").
@@ -14,7 +15,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from fhld_ros.camera.lens import PLUMB_BOB, RATIONAL, Lens, as_lens
+from fhld_ros.camera.lens import MODELS, PLUMB_BOB, Lens, as_lens
 from fhld_ros.errors import ConfigError
 from msg_adapters.camera import camera_info_values, tf_transforms
 
@@ -27,10 +28,11 @@ class CameraCalibration:
     width: int
     height: int
     K: np.ndarray  # (3, 3)
-    D: np.ndarray  # (5,) plumb_bob k1 k2 p1 p2 k3; zeros: no distortion
+    D: np.ndarray  # distortion_model's coefficients (plumb_bob: k1 k2 p1 p2 k3); zeros: none
     T_camera_cloud: np.ndarray  # (4, 4): cloud (LiDAR) frame -> camera optical frame
     camera_frame: str = 'camera'
     cloud_frame: str = 'lidar'
+    distortion_model: str = PLUMB_BOB  # camera_info's name (lens.py)
 
     def __post_init__(self) -> None:
         problem = _problem(self)
@@ -53,10 +55,11 @@ class CameraCalibration:
         ahead = depth > MIN_DEPTH_M
         safe = np.where(ahead, depth, 1.0)
         x, y = cam[:, 0] / safe, cam[:, 1] / safe
-        if np.any(self.D):
-            # far outside the field of view the polynomial folds back into the image
-            ahead &= x * x + y * y < 4.0 * self.max_r2
-            x, y = distort(x, y, self.D)
+        lens = self.lens
+        if lens is not None:
+            # far outside the field of view a lens's polynomial folds back into the image
+            ahead &= lens.unfolded(x, y, self.max_r2)
+            x, y = lens.distort(x, y)
         K = self.K
         uv = np.stack([K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]], axis=1)
         inside = ahead & (uv[:, 0] >= 0) & (uv[:, 0] < self.width) & (uv[:, 1] >= 0) & \
@@ -66,8 +69,12 @@ class CameraCalibration:
     def pixel_rays(self, uv: np.ndarray) -> np.ndarray:
         """(N, 2) pixels -> (N, 3) unit directions in the camera optical frame (distortion
         undone by fixed-point iteration, as OpenCV's undistortPoints does)."""
-        rays = np.column_stack([undistort(uv, self.K, self.D), np.ones(len(uv))])
+        rays = np.column_stack([undistort(uv, self.K, self.lens), np.ones(len(uv))])
         return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
+    @property
+    def lens(self) -> Lens | None:
+        return Lens.from_camera_info(self.distortion_model, self.D)
 
     @property
     def max_r2(self) -> float:
@@ -94,23 +101,24 @@ class CameraCalibration:
         missing = [k for k in ('width', 'height', 'K', 'T_camera_cloud') if k not in data]
         if missing:
             raise ConfigError(f'--calib {path}: missing {", ".join(missing)}')
-        unknown = sorted(set(data) - {'width', 'height', 'K', 'D', 'T_camera_cloud',
-                                      'camera_frame', 'cloud_frame'})
+        unknown = sorted(set(data) - {'width', 'height', 'K', 'D', 'distortion_model',
+                                      'T_camera_cloud', 'camera_frame', 'cloud_frame'})
         if unknown:
             raise ConfigError(f'--calib {path}: unknown key {unknown[0]!r}')
         try:
+            d, model = _distortion(str(data.get('distortion_model', PLUMB_BOB)), data.get('D'))
             return cls(int(data['width']), int(data['height']),
-                       np.asarray(data['K'], dtype=np.float64).reshape(3, 3),
-                       _distortion(data.get('D')),
+                       np.asarray(data['K'], dtype=np.float64).reshape(3, 3), d,
                        np.asarray(data['T_camera_cloud'], dtype=np.float64).reshape(4, 4),
                        str(data.get('camera_frame', 'camera')),
-                       str(data.get('cloud_frame', 'lidar')))
+                       str(data.get('cloud_frame', 'lidar')), model)
         except (TypeError, ValueError) as exc:
             raise ConfigError(f'--calib {path}: {exc}') from exc
 
     def to_yaml(self, path: str | Path) -> None:
         data = {'width': self.width, 'height': self.height,
                 'K': [float(v) for v in self.K.ravel()], 'D': [float(v) for v in self.D],
+                'distortion_model': self.distortion_model,
                 'T_camera_cloud': [[float(v) for v in row] for row in self.T_camera_cloud],
                 'camera_frame': self.camera_frame, 'cloud_frame': self.cloud_frame}
         Path(path).write_text('# fhld camera calibration (docs/annotation.md)\n' +
@@ -138,13 +146,9 @@ class CameraCalibration:
             lens = Lens.from_camera_info(model, D)
         except ValueError as exc:
             raise ConfigError(f'/camera/camera_info: {exc}') from exc
-        if lens is not None and (lens.model not in (PLUMB_BOB, RATIONAL) or
-                                 any(lens.coefficients[5:])):
-            raise ConfigError(f'/camera/camera_info: lens {lens}: projecting LiDAR points takes '
-                              'plumb_bob distortion; give an undistorted camera or --calib YAML')
-        d = np.zeros(5) if lens is None else np.array(lens.coefficients[:5])
+        d, model = _distortion(lens)
         return cls(int(width), int(height), np.asarray(K, dtype=np.float64).reshape(3, 3), d,
-                   T_camera_cloud, camera_frame, cloud_frame)
+                   T_camera_cloud, camera_frame, cloud_frame, model)
 
 
 def corner_r2(width: int, height: int, K: np.ndarray) -> float:
@@ -200,14 +204,19 @@ def distort(x: np.ndarray, y: np.ndarray, D: Lens | np.ndarray | None
     return (x, y) if lens is None else lens.distort(x, y)
 
 
-def _distortion(values: Any) -> np.ndarray:
-    d = np.zeros(5) if values is None or len(values) == 0 else \
-        np.asarray(values, dtype=np.float64).ravel()
-    if d.size == 4:  # k1 k2 p1 p2, as many calibration tools write it
-        d = np.append(d, 0.0)
-    if d.size != 5:
-        raise ValueError(f'D must hold 4 or 5 plumb_bob coefficients, got {d.size}')
-    return d
+def _distortion(lens_or_model: Lens | str | None, values: Any = None
+                ) -> tuple[np.ndarray, str]:
+    """(D with all the model's coefficients, the model): of a Lens (None: plumb_bob zeros),
+    or of a model name and its D as a file gives it (4 plumb_bob values: k3 = 0)."""
+    lens = lens_or_model
+    if isinstance(lens_or_model, str):
+        d = np.zeros(0) if values is None else np.asarray(values, dtype=np.float64).ravel()
+        lens = Lens.from_camera_info(lens_or_model, d)
+        if lens is None:  # no distortion: D of the model's length
+            return np.zeros(MODELS.get(lens_or_model, (0, 5))[1]), lens_or_model
+    if lens is None:
+        return np.zeros(5), PLUMB_BOB
+    return np.array(lens.coefficients), lens.model
 
 
 def _problem(c: CameraCalibration) -> str | None:
@@ -224,6 +233,9 @@ def _problem(c: CameraCalibration) -> str | None:
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0 or \
             not np.allclose(T[3], [0, 0, 0, 1]):
         return 'T_camera_cloud is not a rigid transform (rotation part not orthonormal)'
-    if np.asarray(c.D).shape != (5,) or not np.all(np.isfinite(c.D)):
-        return 'D must hold 5 finite plumb_bob coefficients'
+    n = MODELS.get(c.distortion_model, (0, 0))[1]
+    if not n:
+        return f'distortion_model {c.distortion_model!r} is not one of {", ".join(MODELS)}'
+    if np.asarray(c.D).shape != (n,) or not np.all(np.isfinite(c.D)):
+        return f'D must hold {n} finite {c.distortion_model} coefficients'
     return None

@@ -23,5 +23,6 @@ def write_camera(bag: Any, calib: CameraCalibration, cloud_frame: str, stamp_ns:
                                 calib.camera_in_cloud))
     header = fam.header(stamp_ns, calib.camera_frame)
     bag.write(CAMERA_INFO, 'sensor_msgs/msg/CameraInfo', stamp_ns,
-              camera_info_msg(fam, header, calib.width, calib.height, calib.K, calib.D))
+              camera_info_msg(fam, header, calib.width, calib.height, calib.K, calib.D,
+                              calib.distortion_model))
     bag.write(IMAGE, 'sensor_msgs/msg/Image', stamp_ns, image_to_msg(fam, header, rgb))

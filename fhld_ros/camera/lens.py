@@ -42,7 +42,8 @@ class Lens:
                              f'{", ".join(MODELS)})')
         fewest, n = MODELS[model]
         if d.size < fewest or np.any(d[n:]):
-            raise ValueError(f'distortion_model {model} takes {n} coefficients in d, got '
+            count = f'{n}' if fewest == n else f'{fewest} to {n}'
+            raise ValueError(f'distortion_model {model} takes {count} coefficients in d, got '
                              f'{d.size}')
         return cls(model, tuple(float(c) for c in np.append(d, np.zeros(n))[:n]))
 
