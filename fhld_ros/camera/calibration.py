@@ -106,7 +106,12 @@ class CameraCalibration:
         if unknown:
             raise ConfigError(f'--calib {path}: unknown key {unknown[0]!r}')
         try:
-            d, model = _distortion(str(data.get('distortion_model', PLUMB_BOB)), data.get('D'))
+            model = str(data.get('distortion_model', PLUMB_BOB))
+            lens = Lens.from_camera_info(model, data.get('D') or [])
+            if lens is None:  # keeps the file's model, D of its length (_problem names a bad one)
+                d = np.zeros(MODELS.get(model, (0, 5))[1])
+            else:
+                d, model = _coefficients(lens)
             return cls(int(data['width']), int(data['height']),
                        np.asarray(data['K'], dtype=np.float64).reshape(3, 3), d,
                        np.asarray(data['T_camera_cloud'], dtype=np.float64).reshape(4, 4),
@@ -146,7 +151,7 @@ class CameraCalibration:
             lens = Lens.from_camera_info(model, D)
         except ValueError as exc:
             raise ConfigError(f'/camera/camera_info: {exc}') from exc
-        d, model = _distortion(lens)
+        d, model = _coefficients(lens)
         return cls(int(width), int(height), np.asarray(K, dtype=np.float64).reshape(3, 3), d,
                    T_camera_cloud, camera_frame, cloud_frame, model)
 
@@ -204,16 +209,8 @@ def distort(x: np.ndarray, y: np.ndarray, D: Lens | np.ndarray | None
     return (x, y) if lens is None else lens.distort(x, y)
 
 
-def _distortion(lens_or_model: Lens | str | None, values: Any = None
-                ) -> tuple[np.ndarray, str]:
-    """(D with all the model's coefficients, the model): of a Lens (None: plumb_bob zeros),
-    or of a model name and its D as a file gives it (4 plumb_bob values: k3 = 0)."""
-    lens = lens_or_model
-    if isinstance(lens_or_model, str):
-        d = np.zeros(0) if values is None else np.asarray(values, dtype=np.float64).ravel()
-        lens = Lens.from_camera_info(lens_or_model, d)
-        if lens is None:  # no distortion: D of the model's length
-            return np.zeros(MODELS.get(lens_or_model, (0, 5))[1]), lens_or_model
+def _coefficients(lens: Lens | None) -> tuple[np.ndarray, str]:
+    """(D with all the lens model's coefficients, the model); no lens: plumb_bob zeros."""
     if lens is None:
         return np.zeros(5), PLUMB_BOB
     return np.array(lens.coefficients), lens.model
