@@ -16,6 +16,7 @@ from fhld_ros.salad.road_plane import RoadPlane
 from fhld_ros.salad.sample import CameraLaneSample
 from fhld_ros.salad.sim_source import (
     HEIGHT_RANGE_M,
+    Mounts,
     camera_for_seed,
     salad_seeds,
     simulated_samples,
@@ -114,7 +115,7 @@ def test_simulated_drives_know_their_mount_and_scoring_uses_it_when_asked():
 
 def test_a_drives_camera_moves_to_a_given_height_and_keeps_its_pitch_and_lens():
     own = next(iter(simulated_samples(4_000_000, 1, (320, 180))))
-    tall = next(iter(simulated_samples(4_000_000, 1, (320, 180), heights_m=(2.6, 2.6))))
+    tall = next(iter(simulated_samples(4_000_000, 1, (320, 180), mounts=Mounts((2.6, 2.6)))))
     assert tall.road.height_m == pytest.approx(2.6)
     np.testing.assert_allclose(tall.road.normal, own.road.normal, atol=1e-9)  # same pitch
     np.testing.assert_array_equal(tall.intrinsics, own.intrinsics)
@@ -125,16 +126,42 @@ def test_a_drives_camera_moves_to_a_given_height_and_keeps_its_pitch_and_lens():
     # a range: each seed at the same place in it as in the seeds' own range
     seeds = salad_seeds('train', 20)
     own_h = np.array([camera_for_seed(s).height_m for s in seeds])
-    tall_h = np.array([camera_for_seed(s, heights_m=(2.4, 2.8)).height_m for s in seeds])
+    tall_h = np.array([camera_for_seed(s, mounts=Mounts((2.4, 2.8))).height_m for s in seeds])
     lo, hi = HEIGHT_RANGE_M
     np.testing.assert_allclose(tall_h, 2.4 + (own_h - lo) / (hi - lo) * 0.4, atol=1e-9)
     with pytest.raises(ValueError, match='0 < low <= high'):
-        camera_for_seed(seeds[0], heights_m=(2.0, 1.9))
+        Mounts((2.0, 1.9))
     from fhld_ros.cli import main
     for bad in (['-1'], ['2', '1'], ['1', '2', '3']):
         assert main(['salad-eval', '--drives', '1', '--camera-height', *bad]) == 2
     assert main(['salad-eval', '--drives', '1', '--first-drive', '-1']) == 2
     assert main(['salad-eval', '--drives', '1', '--workers', '0']) == 2
+
+
+def test_a_drives_camera_moves_sideways_and_a_line_runs_under_it():
+    seeds = salad_seeds('train', 40)
+    own = [camera_for_seed(s) for s in seeds]
+    side = [camera_for_seed(s, mounts=Mounts(side_m=1.8)) for s in seeds]
+    left = np.array([d.left_m for d in side])
+    assert np.abs(left).max() <= 1.8 and left.min() < -1.0 and left.max() > 1.0
+    assert all(o == dataclasses.replace(d, left_m=0.0) for o, d in zip(own, side))
+    assert {d.left_m for d in own} == {0.0}
+    seed = int(seeds[int(np.argmax(left))])  # furthest left: the lanes move right in the image
+    a = next(iter(simulated_samples(seed, 1, (320, 180))))
+    b = next(iter(simulated_samples(seed, 1, (320, 180), mounts=Mounts(side_m=1.8))))
+    assert b.road.height_m == pytest.approx(a.road.height_m)
+    near = [lane[lane[:, 2] < 12.0] for lane in a.lanes]
+    moved = [lane[lane[:, 2] < 12.0] for lane in b.lanes]
+    xs_a = sorted(float(np.median(p[:, 0])) for p in near if len(p))
+    xs_b = sorted(float(np.median(p[:, 0])) for p in moved if len(p))
+    shifted = [x + left.max() for x in xs_a]
+    assert sum(min(abs(x - y) for x in xs_b) < 0.1 for y in shifted) >= 2, (xs_b, shifted)
+    assert min(abs(x) for x in xs_b) < 0.3 < min(abs(x) for x in xs_a)  # now under the camera
+    with pytest.raises(ValueError, match='side offset'):
+        Mounts(side_m=-0.5)
+    assert Mounts((2.6, 2.6), 1.5).tag() == '_h2.60-2.60_s1.50' and Mounts().tag() == ''
+    from fhld_ros.cli import main
+    assert main(['salad-eval', '--drives', '1', '--camera-side', '9']) == 2
 
 
 def test_held_out_drives_start_where_asked():

@@ -23,7 +23,7 @@ from torch.utils.data import Dataset, Sampler
 
 from fhld_ros.salad.augment import IDENTITY, SaladAugment, augment_images, draw
 from fhld_ros.salad.sample import CameraLaneSample
-from fhld_ros.salad.sim_source import simulated_samples
+from fhld_ros.salad.sim_source import SEEDS_OWN, Mounts, simulated_samples
 from fhld_ros.salad.targets import lane_targets
 from fhld_ros.salad.virtual_camera import VirtualCamera
 
@@ -60,23 +60,21 @@ def write_shard(path: Path, samples: Iterable[CameraLaneSample], camera: Virtual
     return len(images)
 
 
-def simulated_shard_path(out_dir: Path, seed: int,
-                         heights_m: tuple[float, float] | None = None) -> Path:
-    """Where the drive's shard lives; a camera height range other than the seeds' own is in
-    the name, so drives rendered for another mount are never taken for these."""
-    mount = '' if heights_m is None else f'_h{heights_m[0]:.2f}-{heights_m[1]:.2f}'
-    return out_dir / f'sim_{seed}{mount}{SHARD_SUFFIX}'
+def simulated_shard_path(out_dir: Path, seed: int, mounts: Mounts = SEEDS_OWN) -> Path:
+    """Where the drive's shard lives; mounts other than the seeds' own are in the name, so
+    drives rendered for other mounts are never taken for these."""
+    return out_dir / f'sim_{seed}{mounts.tag()}{SHARD_SUFFIX}'
 
 
 def simulated_shard(out_dir: Path, seed: int, frames: int, camera: VirtualCamera,
-                    heights_m: tuple[float, float] | None = None) -> Path:
-    """The shard of one simulated drive (skipped when it exists; heights_m: its camera height
-    range, sim_source.camera_for_seed). Rendered at 1.5 times the virtual camera's width, so
+                    mounts: Mounts = SEEDS_OWN) -> Path:
+    """The shard of one simulated drive (skipped when it exists; mounts: where its camera sits,
+    sim_source.camera_for_seed). Rendered at 1.5 times the virtual camera's width, so
     the resampling averages pixels (antialiasing) as it would a real high-resolution image."""
-    path = simulated_shard_path(out_dir, seed, heights_m)
+    path = simulated_shard_path(out_dir, seed, mounts)
     if not path.exists():
         size = (3 * camera.width // 2, round(3 * camera.width // 2 * 9 / 16))
-        write_shard(path, simulated_samples(seed, frames, size, heights_m=heights_m), camera)
+        write_shard(path, simulated_samples(seed, frames, size, mounts=mounts), camera)
     return path
 
 

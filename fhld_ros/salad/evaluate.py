@@ -45,8 +45,10 @@ from fhld_ros.salad.openlane_format import read_openlane
 from fhld_ros.salad.perfect_maps import HEADS, PerfectMaps
 from fhld_ros.salad.sample import CameraLaneSample
 from fhld_ros.salad.sim_source import (
-    add_camera_height,
-    camera_heights,
+    SEEDS_OWN,
+    Mounts,
+    add_mount_arguments,
+    camera_mounts,
     salad_seeds,
     simulated_samples,
 )
@@ -84,7 +86,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the near lanes' depth from the road plane of the camera's known "
                              'mount (simulated drives), up to M metres (0: off; 20 chosen on '
                              'the validation images)')
-    add_camera_height(parser)
+    add_mount_arguments(parser)
     parser.add_argument('--workers', type=int, default=1,
                         help='processes rendering the simulated drives (the scoring stays in '
                              'one; the same images and scores at any number)')
@@ -143,11 +145,11 @@ def _by_range(errors: np.ndarray) -> dict[str, dict]:
 
 
 def held_out_drives(drives: int, frames: int, split: str = 'test',
-                    heights_m: tuple[float, float] | None = None, first: int = 0,
+                    mounts: Mounts = SEEDS_OWN, first: int = 0,
                     workers: int = 1) -> Iterator[CameraLaneSample]:
     """The images of the split's drives, in seed order; rendered by `workers` processes
     (ahead of the scoring, which runs in this one) when more than one."""
-    jobs = [(seed, frames, heights_m) for seed in salad_seeds(split, drives, first)]
+    jobs = [(seed, frames, mounts) for seed in salad_seeds(split, drives, first)]
     if workers <= 1:
         for job in jobs:
             yield from _drive_samples(job)
@@ -157,10 +159,9 @@ def held_out_drives(drives: int, frames: int, split: str = 'test',
             yield from samples
 
 
-def _drive_samples(job: tuple[int, int, tuple[float, float] | None]
-                   ) -> list[CameraLaneSample]:
-    seed, frames, heights_m = job
-    return list(simulated_samples(seed, frames, heights_m=heights_m))
+def _drive_samples(job: tuple[int, int, Mounts]) -> list[CameraLaneSample]:
+    seed, frames, mounts = job
+    return list(simulated_samples(seed, frames, mounts=mounts))
 
 
 def _print(name: str, rows: dict[str, dict]) -> None:
@@ -180,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
             args.workers < 1:
         raise ConfigError('--drives, --first-drive and --road-plane must be >= 0, --frames and '
                           '--workers >= 1')
-    heights = camera_heights(args)
+    mounts = camera_mounts(args)
     detector = SaladDetector(args.checkpoint, flip_average=args.flip_average,
                              road_profile=args.road_profile)
     perfect = PerfectMaps(detector, args.perfect) if args.perfect else None
@@ -188,7 +189,7 @@ def run(args: argparse.Namespace) -> int:
     if args.drives:
         split = 'val' if args.validation else 'test'
         sources['validation' if args.validation else 'simulated'] = held_out_drives(
-            args.drives, args.frames, split, heights, args.first_drive, args.workers)
+            args.drives, args.frames, split, mounts, args.first_drive, args.workers)
     if args.once:
         sources['once'] = read_once(args.once, args.once_split)
     if args.openlane:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -47,17 +48,20 @@ PITCH_RANGE_DEG = (-1.0, 5.0)  # optical axis below the horizontal (+: looking d
 HFOV_RANGE_DEG = (50.0, 90.0)
 PRINCIPAL_JITTER = 0.03  # principal point off the image centre, up to this share of the size
 FIXED_HEIGHT_M = 1.5  # randomise=False: this height, PITCH_DEG and HFOV_DEG, centred
+MAX_SIDE_M = 3.0  # --camera-side: a lane's width
 
 
 @dataclass(frozen=True)
 class CameraDraw:
     """The camera of one seed: height above the road (m), pitch (deg, + down), horizontal FOV
-    (deg), principal point offset from the image centre (fractions of width and height)."""
+    (deg), principal point offset from the image centre (fractions of width and height), and
+    how far left (+) of the car's centre line it sits (m)."""
 
     height_m: float
     pitch_deg: float
     hfov_deg: float
     principal_offset: tuple[float, float] = (0.0, 0.0)
+    left_m: float = 0.0
 
     def intrinsics(self, size: tuple[int, int]) -> np.ndarray:
         """K of a (width, height) image: square pixels, the principal point shifted."""
@@ -69,7 +73,9 @@ class CameraDraw:
 
     def extrinsic(self, lidar_height_m: float) -> np.ndarray:
         """T_cloud_camera on a LiDAR lidar_height_m above the road."""
-        return camera_mount(MOUNT_FORWARD_M, lidar_height_m - self.height_m, self.pitch_deg)
+        T = camera_mount(MOUNT_FORWARD_M, lidar_height_m - self.height_m, self.pitch_deg)
+        T[1, 3] = self.left_m
+        return T
 
 
 def check_heights(heights_m: tuple[float, float]) -> tuple[float, float]:
@@ -81,39 +87,77 @@ def check_heights(heights_m: tuple[float, float]) -> tuple[float, float]:
     return low, high
 
 
-def add_camera_height(parser: argparse.ArgumentParser) -> None:
-    """--camera-height M [HIGH], for the commands that render drives."""
+@dataclass(frozen=True)
+class Mounts:
+    """Where a run's simulated cameras sit: heights_m, their height range over the road (None:
+    each seed its own within HEIGHT_RANGE_M); side_m, up to this far left or right of the car's
+    centre line (0: on it). The cars drive their lanes' centres, so with side_m 0 no line ever
+    runs right under the camera, straight up the image, as one does under a car that straddles
+    it or a camera mounted off centre."""
+
+    heights_m: tuple[float, float] | None = None
+    side_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.heights_m is not None:
+            object.__setattr__(self, 'heights_m', check_heights(self.heights_m))
+        if not 0.0 <= self.side_m <= MAX_SIDE_M:
+            raise ValueError(f'the cameras\' side offset must be within 0..{MAX_SIDE_M:g} m, '
+                             f'got {self.side_m:g}')
+
+    def tag(self) -> str:
+        """What sets these mounts apart from the seeds' own, for file names ('' for none)."""
+        heights = '' if self.heights_m is None else \
+            f'_h{self.heights_m[0]:.2f}-{self.heights_m[1]:.2f}'
+        return heights + (f'_s{self.side_m:.2f}' if self.side_m else '')
+
+    def meta(self) -> dict[str, Any]:
+        """What trained weights record of them."""
+        return {**({'camera_heights_m': list(self.heights_m)} if self.heights_m else {}),
+                **({'camera_side_m': self.side_m} if self.side_m else {})}
+
+
+SEEDS_OWN = Mounts()
+
+
+def add_mount_arguments(parser: argparse.ArgumentParser) -> None:
+    """--camera-height M [HIGH] and --camera-side M, for the commands that render drives."""
     parser.add_argument('--camera-height', type=float, nargs='+', metavar='M',
                         help='the simulated cameras at M metres over the road, or drawn within '
                         f'M..HIGH (default: each seed its own, {HEIGHT_RANGE_M[0]:g}-'
                         f'{HEIGHT_RANGE_M[1]:g} m), each keeping its pitch and lens')
+    parser.add_argument('--camera-side', type=float, default=0.0, metavar='M',
+                        help='the simulated cameras drawn up to M metres left or right of the '
+                        'car\'s centre line (default 0: on it), so lines pass under them')
 
 
-def camera_heights(args: argparse.Namespace) -> tuple[float, float] | None:
-    """--camera-height as a checked (low, high) range, None without it."""
-    if args.camera_height is None:
-        return None
-    if len(args.camera_height) > 2:
-        raise ConfigError(f'--camera-height takes M or LOW HIGH, got {args.camera_height}')
+def camera_mounts(args: argparse.Namespace) -> Mounts:
+    """--camera-height and --camera-side, checked."""
+    heights = args.camera_height
+    if heights is not None and len(heights) > 2:
+        raise ConfigError(f'--camera-height takes M or LOW HIGH, got {heights}')
     try:
-        return check_heights((args.camera_height[0], args.camera_height[-1]))
+        return Mounts(None if heights is None else (heights[0], heights[-1]), args.camera_side)
     except ValueError as exc:
-        raise ConfigError(f'--camera-height: {exc}') from None
+        raise ConfigError(f'--camera-height / --camera-side: {exc}') from None
 
 
-def camera_for_seed(seed: int, randomise: bool = True,
-                    heights_m: tuple[float, float] | None = None) -> CameraDraw:
+def camera_for_seed(seed: int, randomise: bool = True, mounts: Mounts = SEEDS_OWN
+                    ) -> CameraDraw:
     """The seed's camera, from its own generator (the scene's draws stay what they are);
-    heights_m: its height from this range instead of HEIGHT_RANGE_M, at the same place in it
-    (a user's mount, e.g. a truck's 2.6 m; (M, M): every camera at M), the rest unchanged."""
+    mounts: its height from mounts.heights_m instead of HEIGHT_RANGE_M, at the same place in
+    it (a user's mount, e.g. a truck's 2.6 m; (M, M): every camera at M), and its side offset,
+    the rest unchanged."""
     if not randomise:
         return CameraDraw(FIXED_HEIGHT_M, PITCH_DEG, HFOV_DEG)
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5A1AD]))
     share, pitch, hfov = (float(rng.uniform(*r)) for r in
                           ((0.0, 1.0), PITCH_RANGE_DEG, HFOV_RANGE_DEG))
-    low, high = HEIGHT_RANGE_M if heights_m is None else check_heights(heights_m)
+    low, high = mounts.heights_m or HEIGHT_RANGE_M
     du, dv = rng.uniform(-PRINCIPAL_JITTER, PRINCIPAL_JITTER, 2)
-    return CameraDraw(low + share * (high - low), pitch, hfov, (float(du), float(dv)))
+    side = float(rng.uniform(-1.0, 1.0))
+    return CameraDraw(low + share * (high - low), pitch, hfov, (float(du), float(dv)),
+                      side * mounts.side_m)
 
 
 def salad_seeds(split: str, count: int, start: int = 0) -> range:
@@ -127,8 +171,7 @@ def salad_seeds(split: str, count: int, start: int = 0) -> range:
 
 
 def drive_camera(seed: int, frames: int, size: tuple[int, int] = DEFAULT_SIZE,
-                 randomise: bool = True, heights_m: tuple[float, float] | None = None
-                 ) -> SimCamera:
+                 randomise: bool = True, mounts: Mounts = SEEDS_OWN) -> SimCamera:
     """The seed's simulator (long enough for `frames` frames FRAME_STRIDE sweeps apart) and
     the camera on it (camera_for_seed)."""
     if not 1 <= frames <= (MAX_SWEEPS - 1) // FRAME_STRIDE + 1:
@@ -137,7 +180,7 @@ def drive_camera(seed: int, frames: int, size: tuple[int, int] = DEFAULT_SIZE,
     scenario = scenario_for_seed(seed)
     sim = Simulator(seed, sweeps=(frames - 1) * FRAME_STRIDE + 1, sensor=scenario['sensor'],
                     topology=scenario['topology'])
-    draw = camera_for_seed(seed, randomise, heights_m)
+    draw = camera_for_seed(seed, randomise, mounts)
     width, height = size
     return SimCamera(sim, width, height, T_cloud_camera=draw.extrinsic(sim.mount.z),
                      K=draw.intrinsics((width, height)))
@@ -153,12 +196,12 @@ def visible_lanes(camera: SimCamera, k: int) -> tuple[CameraImage, list[np.ndarr
 
 
 def simulated_samples(seed: int, frames: int, size: tuple[int, int] = DEFAULT_SIZE,
-                      randomise: bool = True, heights_m: tuple[float, float] | None = None
+                      randomise: bool = True, mounts: Mounts = SEEDS_OWN
                       ) -> Iterator[CameraLaneSample]:
     """`frames` images of the seed's drive, FRAME_STRIDE sweeps apart, with their visible
-    lanes. randomise: the seed's own camera (camera_for_seed, heights_m its height range),
-    else the fixed one."""
-    camera = drive_camera(seed, frames, size, randomise, heights_m)
+    lanes. randomise: the seed's own camera (camera_for_seed, on the given mounts), else the
+    fixed one."""
+    camera = drive_camera(seed, frames, size, randomise, mounts)
     # the mount is known: the LiDAR frame is level, sim.mount.z over the road the car stands on
     T_road_camera = camera.T_cloud_camera.copy()
     T_road_camera[2, 3] += camera.sim.mount.z

@@ -52,7 +52,13 @@ from fhld_ros.salad.model import SaladNet
 from fhld_ros.salad.once_format import SPLITS as ONCE_SPLITS
 from fhld_ros.salad.once_format import read_once
 from fhld_ros.salad.openlane_format import read_openlane
-from fhld_ros.salad.sim_source import add_camera_height, camera_heights, salad_seeds
+from fhld_ros.salad.sim_source import (
+    SEEDS_OWN,
+    Mounts,
+    add_mount_arguments,
+    camera_mounts,
+    salad_seeds,
+)
 from fhld_ros.salad.targets import lane_targets, row_statistics
 from fhld_ros.salad.virtual_camera import VirtualCamera
 
@@ -70,7 +76,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the drives from this one of SALAD's training seeds on (a later "
                         'run renders drives no earlier run saw)')
     parser.add_argument('--frames', type=int, default=10, help='images per drive, 1 s apart')
-    add_camera_height(parser)
+    add_mount_arguments(parser)
     parser.add_argument('--once', type=Path, metavar='ROOT',
                         help='also train on an ONCE-3DLanes folder (its --once-split)')
     parser.add_argument('--once-split', default='train', choices=ONCE_SPLITS)
@@ -111,12 +117,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def build_cache(cache: Path, seeds: range, frames: int, camera: VirtualCamera, workers: int,
-                seconds: float | None = None, heights_m: tuple[float, float] | None = None
-                ) -> None:
+                seconds: float | None = None, mounts: Mounts = SEEDS_OWN) -> None:
     """The shards of the seeds' drives not yet in cache; seconds: stop rendering then, and
-    leave the unfinished drives out; heights_m: the cameras' height range (--camera-height)."""
+    leave the unfinished drives out; mounts: where the cameras sit (--camera-height, -side)."""
     cache.mkdir(parents=True, exist_ok=True)
-    paths = {s: simulated_shard_path(cache, s, heights_m) for s in seeds}
+    paths = {s: simulated_shard_path(cache, s, mounts) for s in seeds}
     todo = [s for s in seeds if not paths[s].exists()]
     if not todo:
         return
@@ -124,7 +129,7 @@ def build_cache(cache: Path, seeds: range, frames: int, camera: VirtualCamera, w
     start = time.monotonic()
     with multiprocessing.Pool(max(workers, 1)) as pool:  # leaving it terminates the workers
         rendering = pool.starmap_async(simulated_shard, [(cache, s, frames, camera,
-                                                          heights_m) for s in todo],
+                                                          mounts) for s in todo],
                                        chunksize=1)
         rendering.wait(seconds)
         if rendering.ready():
@@ -251,10 +256,10 @@ def run(args: argparse.Namespace) -> int:
         seeds = salad_seeds('train', args.drives, args.first_drive)
     except ValueError as exc:
         raise ConfigError(f'--drives / --first-drive: {exc}') from None
-    heights = camera_heights(args)
+    mounts = camera_mounts(args)
     model, state, camera = _start(args)  # its camera decides how the images are resampled
     build_cache(cache, seeds, args.frames, camera, args.workers,
-                None if end is None else args.render_share * 60.0 * args.minutes, heights)
+                None if end is None else args.render_share * 60.0 * args.minutes, mounts)
     build_datasets(cache, args, camera)
     try:
         samples = ShardSamples(finished_shards(cache), camera)
@@ -274,7 +279,7 @@ def run(args: argparse.Namespace) -> int:
             'datasets': dataset_sources(cache),
             **({'first_drive': args.first_drive} if args.first_drive else {}),
             **({'minutes': args.minutes} if args.minutes else {}),
-            **({'camera_heights_m': list(heights)} if heights else {}),
+            **mounts.meta(),
             **({'bf16': True} if args.bf16 else {}),
             **{key: state[key] for key in ('init', 'init_steps') if key in state}}
     train_s = None if end is None else end - time.monotonic() - SAVE_MARGIN_S

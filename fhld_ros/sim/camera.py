@@ -48,7 +48,9 @@ EXPOSURE = 1.25
 # linear albedos
 ASPHALT_TINT = np.array([1.0, 1.0, 1.05])
 WHITE_PAINT = np.array([0.72, 0.72, 0.70])
-YELLOW_PAINT = np.array([0.70, 0.48, 0.06])
+# yellow paint runs from orange (US thermoplastic) to lemon (Chinese and European roads): each
+# road its own, so a network does not learn one hue of yellow as "the" centre line
+YELLOW_PAINTS = np.array([[0.70, 0.48, 0.06], [0.70, 0.66, 0.20]])
 # other ground: (albedo, the material's nominal rho in scene.Surface.material: it scales it)
 GROUND_ALBEDO = {CONCRETE: (np.array([0.36, 0.35, 0.33]), 0.30),
                  GRAVEL: (np.array([0.30, 0.27, 0.22]), 0.22),
@@ -130,6 +132,8 @@ class SimCamera:
         # a grid of its own: sharing the LiDAR's would shift its float32 origin and so its
         # ranges in the last bits, and sweeps must not depend on whether a camera renders
         self.grid = GroundGrid(sim.scene.surface)
+        share = np.random.default_rng(np.random.SeedSequence([sim.seed, 0x7E11])).random()
+        self.yellow_paint = YELLOW_PAINTS[0] + share * (YELLOW_PAINTS[1] - YELLOW_PAINTS[0])
 
     def calibration(self) -> CameraCalibration:
         return CameraCalibration(self.width, self.height, self.K.copy(), self.D.copy(),
@@ -261,7 +265,7 @@ class SimCamera:
             yellow = np.zeros(paint.size, dtype=bool)
             on_line = (kind == LINE) & (line >= 0)
             yellow[on_line] = scene.paint.yellow[line[on_line]]
-            target = np.where(yellow[:, None], YELLOW_PAINT, WHITE_PAINT)
+            target = np.where(yellow[:, None], self.yellow_paint, WHITE_PAINT)
             if worn is not None:  # beads and pigment gone: only `worn` times the asphalt
                 grey = albedo[paint].mean(axis=1, keepdims=True)
                 target = target / target.mean(axis=1, keepdims=True) * grey * worn
