@@ -30,7 +30,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from fhld_ros.annotation.footprint import camera_footprint, ground_plane
+from fhld_ros.annotation.footprint import camera_footprint
 from fhld_ros.camera.calibration import CameraCalibration, seen_box
 from fhld_ros.camera.lens import Lens
 from fhld_ros.errors import ConfigError
@@ -39,6 +39,7 @@ from fhld_ros.pipeline import DUE_FRACTION
 from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT
 from fhld_ros.salad.config import HEIGHT_RANGE_M, WIDE_MOUNT_HEIGHTS_M, SaladConfig
 from fhld_ros.salad.detector import SaladDetector
+from fhld_ros.salad.lanes_road import OPTICAL_TO_FLU, height_over, lanes_plane
 from fhld_ros.salad.parameters import CameraParams
 from fhld_ros.salad.road_plane import RoadPlane
 from fhld_ros.salad.virtual_camera import VirtualCamera
@@ -46,15 +47,7 @@ from msg_adapters.camera import camera_info_values, msg_to_image
 from msg_adapters.family import stamp_to_ns
 from msg_adapters.odometry import euler_to_matrix
 
-# optical frame (x right, y down, z forward) -> the camera's forward-left-up frame
-OPTICAL_TO_FLU = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 EGO_REACH_M = 15.0  # a camera sees the road from metres ahead: ego bounds are taken this far
-# the lanes span a plane when they spread this far sideways, on this many points at least,
-# and the camera lies this high over it, tilted at most this much from the camera's vertical
-PLANE_SPREAD_M = 1.5
-PLANE_MIN_POINTS = 10
-PLANE_HEIGHT_M = (0.3, 10.0)
-PLANE_MAX_TILT_DEG = 15.0
 MOUNT_MARGIN_M = 0.1  # beyond the trained heights by more, the near depth is off (salad.md)
 REGION_PX_PER_UNIT = 1000.0  # the region the model sees, as a camera: pixels per tan(angle)
 # image_proc's image_rect and image_rect_color, a driver's rect_image or image_rectified
@@ -217,28 +210,6 @@ def mount_plane(road: RoadPlane) -> tuple[np.ndarray, np.ndarray]:
     return -down, down * road.height_m
 
 
-def lanes_plane(lanes_flu: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray] | None:
-    """(up normal, point) of the plane the lanes (camera forward-left-up frame) span, None when
-    they span none or one a camera on a road would not be over (see PLANE_*)."""
-    if not lanes_flu:
-        return None
-    points = np.concatenate(lanes_flu)
-    if len(points) < PLANE_MIN_POINTS or np.ptp(points[:, 1]) < PLANE_SPREAD_M:
-        return None
-    normal, point = ground_plane(points)
-    height = height_over((normal, point))
-    tilt = np.degrees(np.arccos(np.clip(normal[2], -1.0, 1.0)))
-    if not PLANE_HEIGHT_M[0] <= height <= PLANE_HEIGHT_M[1] or tilt > PLANE_MAX_TILT_DEG:
-        return None
-    return normal, point
-
-
-def height_over(plane: tuple[np.ndarray, np.ndarray]) -> float:
-    """The camera's height (metres) over a plane (up normal, point) in its own frame."""
-    normal, point = plane
-    return float(-normal @ point)
-
-
 class CameraPipeline:
     """camera_info + images -> SALAD -> lanes in the output frame, with stable ids."""
 
@@ -247,7 +218,8 @@ class CameraPipeline:
         self.detector = detector
         self.min_interval_ns = int(DUE_FRACTION * 1e9 / params.rate_hz)
         self.T_output_camera = euler_to_matrix(*params.camera_to_output)
-        self.road = (RoadPlane.from_extrinsic(self.T_output_camera, params.road_plane_m)
+        self.road = (RoadPlane.from_extrinsic(self.T_output_camera, params.road_plane_m,
+                                              params.road_plane_pitch == 'image')
                      if params.road_plane_m > 0 else None)
         self.mount_plane = None if self.road is None else mount_plane(self.road)
         self.mount_warning = mount_warning(getattr(detector, 'info', {}), self.road)

@@ -22,6 +22,7 @@ from bisect import bisect_right
 import numpy as np
 
 from fhld_ros.salad.config import STRIDE, SaladConfig
+from fhld_ros.salad.lanes_road import image_road
 from fhld_ros.salad.road_plane import RoadPlane
 from fhld_ros.salad.road_profile import shared_row_depth
 
@@ -189,7 +190,13 @@ def decode(prob: np.ndarray, spatial: np.ndarray, cfg: SaladConfig,
     """Lanes ((N, 3) optical frame, near to far) and their scores (mean cell probability)
     from one image's maps: prob (h, w) in [0, 1], spatial (3, h, w); depths pulled towards
     the image's road profile (road_profile.py), the near lanes' from the road plane where the
-    camera's mount gives one."""
+    camera's mount gives one (with road.pitch_from_image only where the lanes decoded without
+    it put the road off the mount's height, and at their own pitch: lanes_road.image_road)."""
+    if road is not None and road.pitch_from_image:
+        plain = decode(prob, spatial, cfg, None, road_profile)
+        road = image_road(road, plain[0], cfg.camera)
+        if road is None:
+            return plain
     points = lane_points(prob, spatial, cfg, road, road_profile)
     lanes, scores = [], []
     for index in group_points(points):

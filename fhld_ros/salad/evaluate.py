@@ -10,9 +10,10 @@ predicted lane, per 10 m of forward distance; where the far range loses it). `--
 replaces heads by their targets (perfect_maps.py), to see which head the F1 is lost in.
 `--road-plane M` gives the near lanes their depth from the road under the camera where the
 source knows its mount (the simulator's drives; road_plane.py), up to M metres: SALAD with a
-known mount, not the paper's SALAD. `--camera-height M` moves every drive's camera to M metres
-over the road (each keeps its pitch and lens; `LOW HIGH`: a range): how a mount outside the
-training range (1.2-2.0 m) fares.
+known mount, not the paper's SALAD (`--road-pitch image`: the mount's height, each image's
+own pitch, where the network's road is off that height; lanes_road.py). `--camera-height M`
+moves every drive's camera to M metres over the road (each keeps its pitch and lens; `LOW
+HIGH`: a range): how a mount outside the training range (1.2-2.0 m) fares.
 Lanes are compared in a camera-centred top view (metrics.py takes x forward, y left, z up:
 the optical frame turned, not moved).
 """
@@ -86,6 +87,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the near lanes' depth from the road plane of the camera's known "
                              'mount (simulated drives), up to M metres (0: off; 20 chosen on '
                              'the validation images)')
+    parser.add_argument('--road-pitch', choices=('mount', 'image'), default='mount',
+                        help="with --road-plane, the road's pitch from the mount, or from each "
+                             "image's own lanes where the network's road is off the mount's "
+                             'height (lanes_road.py)')
     add_mount_arguments(parser)
     parser.add_argument('--workers', type=int, default=1,
                         help='processes rendering the simulated drives (the scoring stays in '
@@ -99,15 +104,16 @@ def optical_to_window(lane: np.ndarray) -> np.ndarray:
 
 
 def score(detector: SaladDetector, samples: Iterable[CameraLaneSample],
-          road_until_m: float = 0.0) -> dict[str, dict]:
+          road_until_m: float = 0.0, pitch_from_image: bool = False) -> dict[str, dict]:
     """Counts summed over the samples, as score rows: 'tau_0.15' ... and 'official', and the
     error by range ('by_range'); road_until_m > 0: with each sample's road plane (if it has
-    one) up to that depth."""
+    one) up to that depth, its pitch the image's own with pitch_from_image."""
     counts = {tau: LaneCounts() for tau in TAUS}
     official, images = LaneCounts(official=True), 0
     errors: list[np.ndarray] = []  # (n, 2): GT point's forward distance, error
     for sample in samples:
-        road = (dataclasses.replace(sample.road, until_m=road_until_m)
+        road = (dataclasses.replace(sample.road, until_m=road_until_m,
+                                    pitch_from_image=pitch_from_image)
                 if road_until_m > 0 and sample.road is not None else None)
         lanes, scores = detector(sample.image, sample.intrinsics, road, sample.distortion)
         pred = [optical_to_window(lane) for lane in lanes]
@@ -198,8 +204,9 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError('nothing to score: --drives 0 and no --once / --openlane')
     results = {}
     for name, samples in sources.items():
-        results[name] = (score(perfect, perfect.over(samples), args.road_plane) if perfect
-                         else score(detector, samples, args.road_plane))
+        image_pitch = args.road_pitch == 'image'
+        results[name] = (score(perfect, perfect.over(samples), args.road_plane, image_pitch)
+                         if perfect else score(detector, samples, args.road_plane, image_pitch))
         _print(f'{name} (perfect {", ".join(args.perfect)})' if perfect else name,
                results[name])
     if args.json:

@@ -78,6 +78,11 @@ class CameraParams:
         "into the network's depth up to 1.5 x this; 0 = off, the network's depth throughout "
         '(no extrinsics needed); 20 scored best on simulated validation drives',
         range='[0, 1000]')
+    road_plane_pitch: str = documented(
+        'mount', "with road_plane_m, where the road's pitch comes from: 'mount' "
+        "(camera_to_output's) or 'image' (each image's own, where its lanes' image lines "
+        "meet, the height and roll still camera_to_output's: for a mount known only by its "
+        'height, or a car that pitches as it brakes)', choices=('mount', 'image'))
     camera_height_m: float = documented(
         1.5, 'height of the camera over the road, used for the searched-area outline when the '
         "detected lanes do not span a plane (the outline lies on the plane they span)",

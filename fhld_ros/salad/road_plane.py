@@ -10,7 +10,7 @@ from the plane, the network's depth stands alone.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -25,11 +25,13 @@ MIN_COSINE = 1e-6  # rays this close to parallel to the road never meet it
 class RoadPlane:
     """The road n . X = height_m in the camera's optical frame (x right, y down, z forward):
     n the unit normal pointing from the camera down to the road, height_m the camera's
-    distance to it; the plane gives lane depths up to until_m."""
+    distance to it; the plane gives lane depths up to until_m. pitch_from_image: only the
+    height and roll are to be trusted, the pitch is each image's own (lanes_road.image_road)."""
 
     normal: tuple[float, float, float]
     height_m: float
     until_m: float = UNTIL_M
+    pitch_from_image: bool = False
 
     def __post_init__(self) -> None:
         n = np.asarray(self.normal, dtype=np.float64)
@@ -45,14 +47,27 @@ class RoadPlane:
         return cls((0.0, float(np.cos(pitch_rad)), float(np.sin(pitch_rad))), height_m, until_m)
 
     @classmethod
-    def from_extrinsic(cls, T_output_camera: np.ndarray, until_m: float = UNTIL_M
-                       ) -> RoadPlane:
+    def from_extrinsic(cls, T_output_camera: np.ndarray, until_m: float = UNTIL_M,
+                       pitch_from_image: bool = False) -> RoadPlane:
         """The output frame's z = 0 plane (its z axis up from the road, as base_footprint's)
         for a camera whose optical frame is T_output_camera (4 x 4) in it."""
         T = np.asarray(T_output_camera, dtype=np.float64)
         down = -T[2, :3]  # the output frame's -z, in optical coordinates
         return cls(tuple(float(c) for c in down / np.linalg.norm(down)), float(T[2, 3]),
-                   until_m)
+                   until_m, pitch_from_image)
+
+    @property
+    def pitch_rad(self) -> float:
+        """How far the camera looks down, over this road (radians)."""
+        return float(np.arctan2(self.normal[2], self.normal[1]))
+
+    def with_pitch(self, pitch_rad: float) -> RoadPlane:
+        """This road seen from the camera pitched down by pitch_rad (its roll and height kept),
+        as a fixed plane."""
+        across = self.normal[0]
+        along = np.sqrt(1.0 - across * across)
+        return replace(self, normal=(across, float(along * np.cos(pitch_rad)),
+                                     float(along * np.sin(pitch_rad))), pitch_from_image=False)
 
     def depth(self, u: np.ndarray, v: np.ndarray, camera: VirtualCamera) -> np.ndarray:
         """The depth (z) where the rays of pixels (u, v) meet the road; inf where they don't."""
