@@ -32,6 +32,8 @@ class LaneOutput:
     timings_ms: dict[str, float] = field(default_factory=dict)
     # the camera's height over the plane its lanes span (camera detector; None: they span none)
     lanes_plane_height_m: float | None = None
+    # its pitch down (degrees) where its lanes' image lines meet (None: fewer than two meet)
+    lanes_pitch_deg: float | None = None
 
 
 class LaneIdTracker:

@@ -289,6 +289,7 @@ def test_lanes_come_out_in_the_output_frame_with_ego_lanes_and_the_seen_ground()
     flu = camera.outline @ OPTICAL_TO_FLU.T
     np.testing.assert_allclose(flu[:, 2], -1.5, atol=1e-9)
     assert camera.lanes_plane_height_m == pytest.approx(1.5)  # reported on /diagnostics
+    assert camera.lanes_pitch_deg == pytest.approx(0.0, abs=1e-6)  # the level camera's
     assert flu[0, 0] == pytest.approx(1.5 / np.tan(np.arctan(165.5 / 400)), rel=0.05)
     assert flu[1, 0] == pytest.approx(60.0) and flu[0, 1] < 0 < flu[3, 1]
     np.testing.assert_array_equal(flu[0], flu[4])
@@ -521,9 +522,11 @@ def test_diagnostics_level_follows_the_last_window():
         stats.image_received(now)
         stats.image_due(k, now, 0.1)
         stats.detection_done(k, now, {'model_ms': 30.0}, now + 0.04, 0.2,
-                             None if k == 9 else 1.5 + 0.1 * (k % 3))
+                             None if k == 9 else 1.5 + 0.1 * (k % 3),
+                             None if k > 6 else 2.0 + k)
     assert stats.assess(2.0)[:2] == (DiagnosticStatus.OK, 'running')
     assert stats.assess(2.0)[2]['window_lanes_plane_height_m'] == '1.60'  # lane-less: left out
+    assert stats.assess(2.0)[2]['window_lanes_pitch_deg'] == '5.00'  # the median of 2-8
     stats.image_received(2.0)
     stats.error('bad_images', ValueError('image is 640x360, its camera_info says 960x540'), 2.0)
     level, message, window = stats.assess(2.05)
@@ -534,6 +537,7 @@ def test_diagnostics_level_follows_the_last_window():
                                      'input stale: no images for 6.0 s (> 2 s)')
     assert stats.assess(13.0)[0] == DiagnosticStatus.ERROR
     assert 'window_lanes_plane_height_m' not in stats.assess(13.0)[2]  # none in the window
+    assert 'window_lanes_pitch_deg' not in stats.assess(13.0)[2]
     status = stats.status({'images': 10}, 'RELIABLE', 'node', 2.05)
     values = {kv.key: kv.value for kv in status.values}
     assert values['latency_ms_p50'] == '40.0' and values['stage_model_ms_p50'] == '30.0'

@@ -9,7 +9,9 @@ and images DDS lost on the way; images left out on purpose (a 30 Hz camera at ra
 not drops. latency_ms = image arrival (its callback) -> its lanes published. Stage medians (ms):
 image_decode = message -> array, wait = arrival -> detection start, warp / model / decode =
 SaladDetector's stages, output = frames, ids and outline, publish = the three messages.
-window_lanes_plane_height_m: the median height of the camera over the plane its lanes span.
+window_lanes_plane_height_m: the median height of the camera over the plane its lanes span;
+window_lanes_pitch_deg: the median of its pitch down where its lanes' image lines meet (both
+the image's own read of the mount, to check camera_to_output against).
 Times are time.monotonic() seconds, and every method takes `now`, so tests need no sleeping.
 """
 from __future__ import annotations
@@ -59,9 +61,10 @@ class CameraStats(WindowedStats):
 
     def detection_done(self, stamp_ns: int, start: float, timings_ms: Mapping[str, float],
                        done: float, publish_ms: float,
-                       lanes_plane_height_m: float | None = None) -> None:
-        """lanes_plane_height_m: the camera's height over the plane its lanes span, as
-        LaneOutput has it (None: they span none)."""
+                       lanes_plane_height_m: float | None = None,
+                       lanes_pitch_deg: float | None = None) -> None:
+        """lanes_plane_height_m, lanes_pitch_deg: the camera's height over the plane its lanes
+        span and its pitch where their image lines meet, as LaneOutput has them (None: none)."""
         latency = self.latency(self.arrived_at.pop(stamp_ns, None), start, done)
         for name in ('warp', 'model', 'decode', 'output'):
             if f'{name}_ms' in timings_ms:
@@ -70,6 +73,8 @@ class CameraStats(WindowedStats):
         self.event('detections', done, latency)
         if lanes_plane_height_m is not None:
             self.event('lanes_plane_height_m', done, lanes_plane_height_m)
+        if lanes_pitch_deg is not None:
+            self.event('lanes_pitch_deg', done, lanes_pitch_deg)
 
     def assess(self, now: float) -> tuple[bytes, str, dict[str, str]]:
         """(level, message, window values) of the last window_sec seconds."""
@@ -99,6 +104,8 @@ class CameraStats(WindowedStats):
         # is off by as much (a real camera read 35 % high, docs/salad.md); give road_plane_m
         if heights := self.recent_values('lanes_plane_height_m', now):
             values['window_lanes_plane_height_m'] = f'{np.median(heights):.2f}'
+        if pitches := self.recent_values('lanes_pitch_deg', now):
+            values['window_lanes_pitch_deg'] = f'{np.median(pitches):.2f}'
         return (*verdict(found), values)
 
     def status(self, pipeline_counters: Mapping[str, int], input_reliability: str,

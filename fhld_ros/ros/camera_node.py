@@ -207,7 +207,8 @@ class CameraLaneDetectorNode(Node):
                 self.lane_pubs[suffix].publish(cdr)
             done = time.monotonic()
             self.stats.detection_done(out.stamp_ns, start, out.timings_ms, done,
-                                      (done - detected) * 1e3, out.lanes_plane_height_m)
+                                      (done - detected) * 1e3, out.lanes_plane_height_m,
+                                      out.lanes_pitch_deg)
             return True
         except Exception as exc:
             self.stats.error('detection_errors', exc)

@@ -39,7 +39,7 @@ from fhld_ros.pipeline import DUE_FRACTION
 from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT
 from fhld_ros.salad.config import HEIGHT_RANGE_M, WIDE_MOUNT_HEIGHTS_M, SaladConfig
 from fhld_ros.salad.detector import SaladDetector
-from fhld_ros.salad.lanes_road import OPTICAL_TO_FLU, height_over, lanes_plane
+from fhld_ros.salad.lanes_road import OPTICAL_TO_FLU, height_over, lanes_pitch, lanes_plane
 from fhld_ros.salad.parameters import CameraParams
 from fhld_ros.salad.road_plane import RoadPlane
 from fhld_ros.salad.virtual_camera import VirtualCamera
@@ -320,6 +320,7 @@ class CameraPipeline:
         lanes = [lane @ T[:3, :3].T + T[:3, 3] for lane in lanes_flu]
         left, right = ego_lane_bounds(lanes_flu, EGO_REACH_M)
         plane = lanes_plane(lanes_flu)
+        pitch = lanes_pitch([lanes_optical[i] for i in keep], self.detector.cfg.camera)
         outline = self.outline(image.camera, plane)
         self.counters['detections'] += 1
         timings = dict(self.detector.timings_ms)
@@ -329,7 +330,8 @@ class CameraPipeline:
             ids=self.ids.assign(lanes_flu), outline=outline @ T[:3, :3].T + T[:3, 3],
             ego_left=None if left is None else lanes[left],
             ego_right=None if right is None else lanes[right], timings_ms=timings,
-            lanes_plane_height_m=None if plane is None else height_over(plane))
+            lanes_plane_height_m=None if plane is None else height_over(plane),
+            lanes_pitch_deg=None if pitch is None else float(np.degrees(pitch)))
 
     def outline(self, camera: CameraIntrinsics,
                 lanes_ground: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
