@@ -251,6 +251,28 @@ def _info(k: np.ndarray = K, width: int = 960, height: int = 540,
     return camera_info_msg(FAMILY, FAMILY.header(0, 'camera'), width, height, k, d, model)
 
 
+def test_with_the_images_pitch_the_outline_lies_on_the_road_the_lanes_span():
+    # the mount says 3 degrees down; the lanes (RoadDetector's) lie level under the camera
+    pose = (0.0, 0.0, 1.5, -np.pi / 2 - np.radians(3.0), 0.0, -np.pi / 2)
+    outs = []
+    for pitch in ('mount', 'image'):
+        pipeline = CameraPipeline(CameraParams(output_frame='base_footprint',
+                                               camera_to_output=pose, road_plane_m=20.0,
+                                               road_plane_pitch=pitch), RoadDetector())
+        assert pipeline.receive_camera_info(_info()) is None
+        assert pipeline.receive_image(_image(0)).due
+        outs.append(pipeline.detect())
+    mount, image = outs
+    np.testing.assert_allclose(mount.outline[:, 2], 0.0, atol=1e-9)  # the mount's road
+    points = np.concatenate(image.lanes)
+    fit = np.column_stack([points[:, :2], np.ones(len(points))])
+    coef, *_ = np.linalg.lstsq(fit, points[:, 2], rcond=None)
+    outline = np.column_stack([image.outline[:, :2], np.ones(5)]) @ coef
+    np.testing.assert_allclose(image.outline[:, 2], outline, atol=1e-6)
+    assert np.ptp(image.outline[:, 2]) > 1.0  # tilted 3 degrees against base_footprint
+    assert image.lanes_pitch_deg == pytest.approx(0.0, abs=1e-6)  # level to the camera
+
+
 def test_a_distorted_camera_s_distortion_reaches_the_detector():
     pipeline = CameraPipeline(CameraParams(), RoadDetector())
     d = np.array([-0.108, 0.139, -0.0038, -0.0048, 0.0])  # the PJLab camera's

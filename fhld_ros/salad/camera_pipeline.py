@@ -19,7 +19,8 @@ turned: x forward, y left), whatever the output frame. The bev_window outline is
 model saw up to the decoder's depth (annotation/footprint.py) on the plane the lanes span, or a
 level road params.camera_height_m below the camera when they span none. With
 params.road_plane_m the near lanes take their depth from output_frame's z = 0 plane, the road
-(road_plane.py), and the outline lies on it.
+(road_plane.py), and the outline lies on it (on the lanes' plane first where road_plane_pitch
+is 'image': the mount's pitch is not trusted).
 """
 from __future__ import annotations
 
@@ -337,14 +338,18 @@ class CameraPipeline:
                 lanes_ground: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
         """(5, 3) closed outline, camera forward-left-up frame, of the ground the model saw up
         to the decoder's depth, on the known mount's road, else lanes_ground (the plane the
-        lanes span, lanes_plane()), else a level road (see the module doc); the camera's
-        position five times when it saw no ground (a camera looking up)."""
+        lanes span, lanes_plane()), else a level road (see the module doc); lanes_ground first
+        where the mount's pitch is not trusted (road_plane_pitch image); the camera's position
+        five times when it saw no ground (a camera looking up)."""
         cfg = self.detector.cfg
         region = seen_region(camera, cfg.camera)
         T_flu_optical = np.eye(4)
         T_flu_optical[:3, :3] = OPTICAL_TO_FLU
         level = (np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -self.params.camera_height_m]))
-        for plane in (self.mount_plane, lanes_ground, level):
+        planes = (self.mount_plane, lanes_ground, level)
+        if self.road is not None and self.road.pitch_from_image:
+            planes = (lanes_ground, self.mount_plane, level)
+        for plane in planes:
             if plane is None or region is None:
                 continue
             ground = camera_footprint(region, T_flu_optical, *plane, cfg.max_depth_m)
