@@ -202,9 +202,8 @@ def run(args: argparse.Namespace) -> int:
         sources['openlane'] = read_openlane(args.openlane)
     if not sources:
         raise ConfigError('nothing to score: --drives 0 and no --once / --openlane')
-    results = {}
+    results, image_pitch = {}, args.road_pitch == 'image'
     for name, samples in sources.items():
-        image_pitch = args.road_pitch == 'image'
         results[name] = (score(perfect, perfect.over(samples), args.road_plane, image_pitch)
                          if perfect else score(detector, samples, args.road_plane, image_pitch))
         _print(f'{name} (perfect {", ".join(args.perfect)})' if perfect else name,
