@@ -382,12 +382,13 @@ def test_the_shipped_weights_find_the_lanes_of_a_held_out_simulated_image():
 
 
 def test_the_wide_mount_weights_place_a_tall_cameras_near_lanes():
-    from fhld_ros.salad.sim_source import Mounts, salad_seeds, simulated_samples
+    from fhld_ros.salad.sim_source import DriveVariant, salad_seeds, simulated_samples
 
     # by name: the shipped file, wherever the package is installed
     detector = SaladDetector('salad_wide_mount')
     assert detector.info['meta']['camera_heights_m'] == [1.2, 3.0]
-    sample = next(simulated_samples(salad_seeds('test', 1)[0], 1, mounts=Mounts((2.7, 2.7))))
+    sample = next(simulated_samples(salad_seeds('test', 1)[0], 1,
+                                    variant=DriveVariant((2.7, 2.7))))
     lanes, _ = detector(sample.image, sample.intrinsics)
     points = np.concatenate(lanes)
     near = points[(points[:, 2] > 5) & (points[:, 2] < 25)]  # optical frame: z forward

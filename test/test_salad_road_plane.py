@@ -16,7 +16,7 @@ from fhld_ros.salad.road_plane import RoadPlane
 from fhld_ros.salad.sample import CameraLaneSample
 from fhld_ros.salad.sim_source import (
     HEIGHT_RANGE_M,
-    Mounts,
+    DriveVariant,
     camera_for_seed,
     salad_seeds,
     simulated_samples,
@@ -115,7 +115,8 @@ def test_simulated_drives_know_their_mount_and_scoring_uses_it_when_asked():
 
 def test_a_drives_camera_moves_to_a_given_height_and_keeps_its_pitch_and_lens():
     own = next(iter(simulated_samples(4_000_000, 1, (320, 180))))
-    tall = next(iter(simulated_samples(4_000_000, 1, (320, 180), mounts=Mounts((2.6, 2.6)))))
+    tall = next(iter(simulated_samples(4_000_000, 1, (320, 180),
+                                       variant=DriveVariant((2.6, 2.6)))))
     assert tall.road.height_m == pytest.approx(2.6)
     np.testing.assert_allclose(tall.road.normal, own.road.normal, atol=1e-9)  # same pitch
     np.testing.assert_array_equal(tall.intrinsics, own.intrinsics)
@@ -126,11 +127,12 @@ def test_a_drives_camera_moves_to_a_given_height_and_keeps_its_pitch_and_lens():
     # a range: each seed at the same place in it as in the seeds' own range
     seeds = salad_seeds('train', 20)
     own_h = np.array([camera_for_seed(s).height_m for s in seeds])
-    tall_h = np.array([camera_for_seed(s, mounts=Mounts((2.4, 2.8))).height_m for s in seeds])
+    tall = DriveVariant((2.4, 2.8))
+    tall_h = np.array([camera_for_seed(s, variant=tall).height_m for s in seeds])
     lo, hi = HEIGHT_RANGE_M
     np.testing.assert_allclose(tall_h, 2.4 + (own_h - lo) / (hi - lo) * 0.4, atol=1e-9)
     with pytest.raises(ValueError, match='0 < low <= high'):
-        Mounts((2.0, 1.9))
+        DriveVariant((2.0, 1.9))
     from fhld_ros.cli import main
     for bad in (['-1'], ['2', '1'], ['1', '2', '3']):
         assert main(['salad-eval', '--drives', '1', '--camera-height', *bad]) == 2
@@ -141,14 +143,14 @@ def test_a_drives_camera_moves_to_a_given_height_and_keeps_its_pitch_and_lens():
 def test_a_drives_camera_moves_sideways_and_a_line_runs_under_it():
     seeds = salad_seeds('train', 40)
     own = [camera_for_seed(s) for s in seeds]
-    side = [camera_for_seed(s, mounts=Mounts(side_m=1.8)) for s in seeds]
+    side = [camera_for_seed(s, variant=DriveVariant(side_m=1.8)) for s in seeds]
     left = np.array([d.left_m for d in side])
     assert np.abs(left).max() <= 1.8 and left.min() < -1.0 and left.max() > 1.0
     assert all(o == dataclasses.replace(d, left_m=0.0) for o, d in zip(own, side))
     assert {d.left_m for d in own} == {0.0}
     seed = int(seeds[int(np.argmax(left))])  # furthest left: the lanes move right in the image
     a = next(iter(simulated_samples(seed, 1, (320, 180))))
-    b = next(iter(simulated_samples(seed, 1, (320, 180), mounts=Mounts(side_m=1.8))))
+    b = next(iter(simulated_samples(seed, 1, (320, 180), variant=DriveVariant(side_m=1.8))))
     assert b.road.height_m == pytest.approx(a.road.height_m)
     near = [lane[lane[:, 2] < 12.0] for lane in a.lanes]
     moved = [lane[lane[:, 2] < 12.0] for lane in b.lanes]
@@ -158,10 +160,38 @@ def test_a_drives_camera_moves_sideways_and_a_line_runs_under_it():
     assert sum(min(abs(x - y) for x in xs_b) < 0.1 for y in shifted) >= 2, (xs_b, shifted)
     assert min(abs(x) for x in xs_b) < 0.3 < min(abs(x) for x in xs_a)  # now under the camera
     with pytest.raises(ValueError, match='side offset'):
-        Mounts(side_m=-0.5)
-    assert Mounts((2.6, 2.6), 1.5).tag() == '_h2.60-2.60_s1.50' and Mounts().tag() == ''
+        DriveVariant(side_m=-0.5)
+    assert DriveVariant((2.6, 2.6), 1.5).tag() == '_h2.60-2.60_s1.50'
+    assert DriveVariant().tag() == '' and DriveVariant(road_look=True).tag() == '_look'
     from fhld_ros.cli import main
     assert main(['salad-eval', '--drives', '1', '--camera-side', '9']) == 2
+
+
+def test_the_road_look_paints_no_lines_along_half_the_kerbs_and_varies_the_pavement():
+    from fhld_ros.data.variation import road_variation
+    seeds = salad_seeds('train', 200)
+    draws = [road_variation(s) for s in seeds]
+    assert draws == [road_variation(s) for s in seeds]  # the seed's own, every time
+    for key, share in (('edge_lines', 0.5), ('seams', 0.35)):
+        assert abs(np.mean([d[key] for d in draws]) - share) < 0.1, key
+    for key in ('gutter_ratio', 'asphalt_rho'):
+        assert abs(np.mean([d[key] is not None for d in draws]) - 0.35) < 0.1, key
+    look = DriveVariant(road_look=True)
+    assert look.meta() == {'road_look': True} and DriveVariant().road(seeds[0]) == {}
+    seed = next(s for s, d in zip(seeds, draws) if not d['edge_lines'])
+    own = next(iter(simulated_samples(seed, 1, (320, 180))))
+    bare = next(iter(simulated_samples(seed, 1, (320, 180), variant=look)))
+    # the same camera and lanes, less the two edge lines just inside the kerbs
+    np.testing.assert_array_equal(bare.intrinsics, own.intrinsics)
+    assert bare.road == own.road
+    near = lambda sample: sorted(float(np.median(lane[lane[:, 2] < 20.0, 0]))  # noqa: E731
+                                 for lane in sample.lanes if (lane[:, 2] < 20.0).sum() > 3)
+    kept, before = near(bare), near(own)
+    assert len(kept) < len(before) and all(min(abs(x - y) for y in before) < 0.05
+                                           for x in kept), (kept, before)
+    assert np.abs(bare.image.astype(int) - own.image).mean() > 0.5
+    from fhld_ros.cli import main
+    assert main(['salad-eval', '--drives', '1', '--road-look', '--camera-side', '9']) == 2
 
 
 def test_held_out_drives_start_where_asked():

@@ -78,7 +78,7 @@ def sensor_variation(seed: int, settings: VariationOptions) -> dict:
             'markings': bool(rng.random() >= settings.no_markings_share), 'intensity': units,
             'intensity_gain': round(gain, 3), 'mount_z': mount,
             'single_sweep': bool(rng.random() < settings.single_sweep_share),
-            **(_road_look(rng, settings) if settings.road_look else {}),
+            **(_road_look(rng, settings.bright_asphalt_share) if settings.road_look else {}),
             **(_bare_curbs(seed) if settings.bare_curbs else {}),
             **(_laser_gains(seed) if settings.laser_gains else {})}
 
@@ -111,9 +111,19 @@ def _log_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
     return float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
 
 
-def _road_look(rng: np.random.Generator, settings: VariationOptions) -> dict:
+def road_variation(seed: int) -> dict:
+    """sensor_variation's pavement draws (road_look: bright pavement, gutters, seams; and
+    bare_curbs) at their default shares, for a camera's drive: its own stream, so the seed's
+    other draws stay put."""
+    look = _road_look(np.random.default_rng(np.random.SeedSequence([seed, 0xCA3E])),
+                      ROAD_LOOK_SHARE)
+    return {**{key: look[key] for key in ('asphalt_rho', 'gutter_ratio', 'seams')},
+            **_bare_curbs(seed)}
+
+
+def _road_look(rng: np.random.Generator, bright_share: float) -> dict:
     """sensor_variation's pavement and mount draws (after its older ones, which stay put)."""
-    bright = rng.random() < settings.bright_asphalt_share
+    bright = rng.random() < bright_share
     asphalt = round(_log_uniform(rng, *BRIGHT_ASPHALT_RANGE), 3)
     gutter = rng.random() < ROAD_LOOK_SHARE
     ratio = round(_log_uniform(rng, *GUTTER_RATIO_RANGE), 3)

@@ -23,7 +23,7 @@ from torch.utils.data import Dataset, Sampler
 
 from fhld_ros.salad.augment import IDENTITY, SaladAugment, augment_images, draw
 from fhld_ros.salad.sample import CameraLaneSample
-from fhld_ros.salad.sim_source import SEEDS_OWN, Mounts, simulated_samples
+from fhld_ros.salad.sim_source import SEEDS_OWN, DriveVariant, simulated_samples
 from fhld_ros.salad.targets import lane_targets
 from fhld_ros.salad.virtual_camera import VirtualCamera
 
@@ -60,21 +60,22 @@ def write_shard(path: Path, samples: Iterable[CameraLaneSample], camera: Virtual
     return len(images)
 
 
-def simulated_shard_path(out_dir: Path, seed: int, mounts: Mounts = SEEDS_OWN) -> Path:
-    """Where the drive's shard lives; mounts other than the seeds' own are in the name, so
-    drives rendered for other mounts are never taken for these."""
-    return out_dir / f'sim_{seed}{mounts.tag()}{SHARD_SUFFIX}'
+def simulated_shard_path(out_dir: Path, seed: int, variant: DriveVariant = SEEDS_OWN) -> Path:
+    """Where the drive's shard lives; a variant other than the seeds' own is in the name, so
+    drives rendered for another variant are never taken for these."""
+    return out_dir / f'sim_{seed}{variant.tag()}{SHARD_SUFFIX}'
 
 
 def simulated_shard(out_dir: Path, seed: int, frames: int, camera: VirtualCamera,
-                    mounts: Mounts = SEEDS_OWN) -> Path:
-    """The shard of one simulated drive (skipped when it exists; mounts: where its camera sits,
-    sim_source.camera_for_seed). Rendered at 1.5 times the virtual camera's width, so
-    the resampling averages pixels (antialiasing) as it would a real high-resolution image."""
-    path = simulated_shard_path(out_dir, seed, mounts)
+                    variant: DriveVariant = SEEDS_OWN) -> Path:
+    """The shard of one simulated drive (skipped when it exists; variant: where its camera
+    sits and how its road looks, sim_source.DriveVariant). Rendered at 1.5 times the virtual
+    camera's width, so the resampling averages pixels (antialiasing) as it would a real
+    high-resolution image."""
+    path = simulated_shard_path(out_dir, seed, variant)
     if not path.exists():
         size = (3 * camera.width // 2, round(3 * camera.width // 2 * 9 / 16))
-        write_shard(path, simulated_samples(seed, frames, size, mounts=mounts), camera)
+        write_shard(path, simulated_samples(seed, frames, size, variant=variant), camera)
     return path
 
 

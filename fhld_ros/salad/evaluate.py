@@ -47,9 +47,9 @@ from fhld_ros.salad.perfect_maps import HEADS, PerfectMaps
 from fhld_ros.salad.sample import CameraLaneSample
 from fhld_ros.salad.sim_source import (
     SEEDS_OWN,
-    Mounts,
-    add_mount_arguments,
-    camera_mounts,
+    DriveVariant,
+    add_variant_arguments,
+    drive_variant,
     salad_seeds,
     simulated_samples,
 )
@@ -91,7 +91,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --road-plane, the road's pitch from the mount, or from each "
                              "image's own lanes where the network's road is off the mount's "
                              'height (lanes_road.py)')
-    add_mount_arguments(parser)
+    add_variant_arguments(parser)
     parser.add_argument('--workers', type=int, default=1,
                         help='processes rendering the simulated drives (the scoring stays in '
                              'one; the same images and scores at any number)')
@@ -151,11 +151,11 @@ def _by_range(errors: np.ndarray) -> dict[str, dict]:
 
 
 def held_out_drives(drives: int, frames: int, split: str = 'test',
-                    mounts: Mounts = SEEDS_OWN, first: int = 0,
+                    variant: DriveVariant = SEEDS_OWN, first: int = 0,
                     workers: int = 1) -> Iterator[CameraLaneSample]:
     """The images of the split's drives, in seed order; rendered by `workers` processes
     (ahead of the scoring, which runs in this one) when more than one."""
-    jobs = [(seed, frames, mounts) for seed in salad_seeds(split, drives, first)]
+    jobs = [(seed, frames, variant) for seed in salad_seeds(split, drives, first)]
     if workers <= 1:
         for job in jobs:
             yield from _drive_samples(job)
@@ -165,9 +165,9 @@ def held_out_drives(drives: int, frames: int, split: str = 'test',
             yield from samples
 
 
-def _drive_samples(job: tuple[int, int, Mounts]) -> list[CameraLaneSample]:
-    seed, frames, mounts = job
-    return list(simulated_samples(seed, frames, mounts=mounts))
+def _drive_samples(job: tuple[int, int, DriveVariant]) -> list[CameraLaneSample]:
+    seed, frames, variant = job
+    return list(simulated_samples(seed, frames, variant=variant))
 
 
 def _print(name: str, rows: dict[str, dict]) -> None:
@@ -187,7 +187,7 @@ def run(args: argparse.Namespace) -> int:
             args.workers < 1:
         raise ConfigError('--drives, --first-drive and --road-plane must be >= 0, --frames and '
                           '--workers >= 1')
-    mounts = camera_mounts(args)
+    variant = drive_variant(args)
     detector = SaladDetector(args.checkpoint, flip_average=args.flip_average,
                              road_profile=args.road_profile)
     perfect = PerfectMaps(detector, args.perfect) if args.perfect else None
@@ -195,7 +195,7 @@ def run(args: argparse.Namespace) -> int:
     if args.drives:
         split = 'val' if args.validation else 'test'
         sources['validation' if args.validation else 'simulated'] = held_out_drives(
-            args.drives, args.frames, split, mounts, args.first_drive, args.workers)
+            args.drives, args.frames, split, variant, args.first_drive, args.workers)
     if args.once:
         sources['once'] = read_once(args.once, args.once_split)
     if args.openlane:

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from fhld_ros.data.cache import scenario_for_seed
+from fhld_ros.data.variation import road_variation
 from fhld_ros.errors import ConfigError
 from fhld_ros.salad.config import HEIGHT_RANGE_M
 from fhld_ros.salad.road_plane import RoadPlane
@@ -88,15 +89,24 @@ def check_heights(heights_m: tuple[float, float]) -> tuple[float, float]:
 
 
 @dataclass(frozen=True)
-class Mounts:
-    """Where a run's simulated cameras sit: heights_m, their height range over the road (None:
-    each seed its own within HEIGHT_RANGE_M); side_m, up to this far left or right of the car's
-    centre line (0: on it). The cars drive their lanes' centres, so with side_m 0 no line ever
-    runs right under the camera, straight up the image, as one does under a car that straddles
-    it or a camera mounted off centre."""
+class DriveVariant:
+    """How a run's simulated drives differ from their seeds' own.
+
+    Where the cameras sit: heights_m, their height range over the road (None: each seed its own
+    within HEIGHT_RANGE_M); side_m, up to this far left or right of the car's centre line (0: on
+    it). The cars drive their lanes' centres, so with side_m 0 no line ever runs right under the
+    camera, straight up the image, as one does under a car that straddles it or a camera
+    mounted off centre.
+
+    How the roads look: with road_look each seed draws data.variation.road_variation: half the
+    roads paint no line along their kerbs (the lanes run to the kerb), and some have gutters
+    along the paved edges, sealed seams or bright pavement. Without it every road paints a line
+    just inside each kerb, and a network learns "kerb => lane line".
+    """
 
     heights_m: tuple[float, float] | None = None
     side_m: float = 0.0
+    road_look: bool = False
 
     def __post_init__(self) -> None:
         if self.heights_m is not None:
@@ -106,22 +116,29 @@ class Mounts:
                              f'got {self.side_m:g}')
 
     def tag(self) -> str:
-        """What sets these mounts apart from the seeds' own, for file names ('' for none)."""
+        """What sets this variant apart from the seeds' own, for file names ('' for none)."""
         heights = '' if self.heights_m is None else \
             f'_h{self.heights_m[0]:.2f}-{self.heights_m[1]:.2f}'
-        return heights + (f'_s{self.side_m:.2f}' if self.side_m else '')
+        return (heights + (f'_s{self.side_m:.2f}' if self.side_m else '') +
+                ('_look' if self.road_look else ''))
 
     def meta(self) -> dict[str, Any]:
-        """What trained weights record of them."""
+        """What trained weights record of it."""
         return {**({'camera_heights_m': list(self.heights_m)} if self.heights_m else {}),
-                **({'camera_side_m': self.side_m} if self.side_m else {})}
+                **({'camera_side_m': self.side_m} if self.side_m else {}),
+                **({'road_look': True} if self.road_look else {})}
+
+    def road(self, seed: int) -> dict[str, Any]:
+        """The simulator options of the seed's road (none: its own)."""
+        return road_variation(seed) if self.road_look else {}
 
 
-SEEDS_OWN = Mounts()
+SEEDS_OWN = DriveVariant()
 
 
-def add_mount_arguments(parser: argparse.ArgumentParser) -> None:
-    """--camera-height M [HIGH] and --camera-side M, for the commands that render drives."""
+def add_variant_arguments(parser: argparse.ArgumentParser) -> None:
+    """--camera-height M [HIGH], --camera-side M and --road-look, for the commands that render
+    drives."""
     parser.add_argument('--camera-height', type=float, nargs='+', metavar='M',
                         help='the simulated cameras at M metres over the road, or drawn within '
                         f'M..HIGH (default: each seed its own, {HEIGHT_RANGE_M[0]:g}-'
@@ -129,23 +146,28 @@ def add_mount_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--camera-side', type=float, default=0.0, metavar='M',
                         help='the simulated cameras drawn up to M metres left or right of the '
                         'car\'s centre line (default 0: on it), so lines pass under them')
+    parser.add_argument('--road-look', action='store_true',
+                        help='the roads drawn as the LiDAR detector\'s training draws them: '
+                        'half without lines along their kerbs, some with gutters, sealed seams '
+                        'or bright pavement (default: each road as its seed draws it)')
 
 
-def camera_mounts(args: argparse.Namespace) -> Mounts:
-    """--camera-height and --camera-side, checked."""
+def drive_variant(args: argparse.Namespace) -> DriveVariant:
+    """--camera-height, --camera-side and --road-look, checked."""
     heights = args.camera_height
     if heights is not None and len(heights) > 2:
         raise ConfigError(f'--camera-height takes M or LOW HIGH, got {heights}')
     try:
-        return Mounts(None if heights is None else (heights[0], heights[-1]), args.camera_side)
+        return DriveVariant(None if heights is None else (heights[0], heights[-1]),
+                            args.camera_side, args.road_look)
     except ValueError as exc:
         raise ConfigError(f'--camera-height / --camera-side: {exc}') from None
 
 
-def camera_for_seed(seed: int, randomise: bool = True, mounts: Mounts = SEEDS_OWN
+def camera_for_seed(seed: int, randomise: bool = True, variant: DriveVariant = SEEDS_OWN
                     ) -> CameraDraw:
     """The seed's camera, from its own generator (the scene's draws stay what they are);
-    mounts: its height from mounts.heights_m instead of HEIGHT_RANGE_M, at the same place in
+    variant: its height from variant.heights_m instead of HEIGHT_RANGE_M, at the same place in
     it (a user's mount, e.g. a truck's 2.6 m; (M, M): every camera at M), and its side offset,
     the rest unchanged."""
     if not randomise:
@@ -153,11 +175,11 @@ def camera_for_seed(seed: int, randomise: bool = True, mounts: Mounts = SEEDS_OW
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5A1AD]))
     share, pitch, hfov = (float(rng.uniform(*r)) for r in
                           ((0.0, 1.0), PITCH_RANGE_DEG, HFOV_RANGE_DEG))
-    low, high = mounts.heights_m or HEIGHT_RANGE_M
+    low, high = variant.heights_m or HEIGHT_RANGE_M
     du, dv = rng.uniform(-PRINCIPAL_JITTER, PRINCIPAL_JITTER, 2)
     side = float(rng.uniform(-1.0, 1.0))
     return CameraDraw(low + share * (high - low), pitch, hfov, (float(du), float(dv)),
-                      side * mounts.side_m)
+                      side * variant.side_m)
 
 
 def salad_seeds(split: str, count: int, start: int = 0) -> range:
@@ -171,7 +193,7 @@ def salad_seeds(split: str, count: int, start: int = 0) -> range:
 
 
 def drive_camera(seed: int, frames: int, size: tuple[int, int] = DEFAULT_SIZE,
-                 randomise: bool = True, mounts: Mounts = SEEDS_OWN) -> SimCamera:
+                 randomise: bool = True, variant: DriveVariant = SEEDS_OWN) -> SimCamera:
     """The seed's simulator (long enough for `frames` frames FRAME_STRIDE sweeps apart) and
     the camera on it (camera_for_seed)."""
     if not 1 <= frames <= (MAX_SWEEPS - 1) // FRAME_STRIDE + 1:
@@ -179,8 +201,8 @@ def drive_camera(seed: int, frames: int, size: tuple[int, int] = DEFAULT_SIZE,
                          f'got {frames}')
     scenario = scenario_for_seed(seed)
     sim = Simulator(seed, sweeps=(frames - 1) * FRAME_STRIDE + 1, sensor=scenario['sensor'],
-                    topology=scenario['topology'])
-    draw = camera_for_seed(seed, randomise, mounts)
+                    topology=scenario['topology'], **variant.road(seed))
+    draw = camera_for_seed(seed, randomise, variant)
     width, height = size
     return SimCamera(sim, width, height, T_cloud_camera=draw.extrinsic(sim.mount.z),
                      K=draw.intrinsics((width, height)))
@@ -196,12 +218,12 @@ def visible_lanes(camera: SimCamera, k: int) -> tuple[CameraImage, list[np.ndarr
 
 
 def simulated_samples(seed: int, frames: int, size: tuple[int, int] = DEFAULT_SIZE,
-                      randomise: bool = True, mounts: Mounts = SEEDS_OWN
+                      randomise: bool = True, variant: DriveVariant = SEEDS_OWN
                       ) -> Iterator[CameraLaneSample]:
     """`frames` images of the seed's drive, FRAME_STRIDE sweeps apart, with their visible
-    lanes. randomise: the seed's own camera (camera_for_seed, on the given mounts), else the
+    lanes. randomise: the seed's own camera (camera_for_seed, as the variant draws it), else the
     fixed one."""
-    camera = drive_camera(seed, frames, size, randomise, mounts)
+    camera = drive_camera(seed, frames, size, randomise, variant)
     # the mount is known: the LiDAR frame is level, sim.mount.z over the road the car stands on
     T_road_camera = camera.T_cloud_camera.copy()
     T_road_camera[2, 3] += camera.sim.mount.z

@@ -54,9 +54,9 @@ from fhld_ros.salad.once_format import read_once
 from fhld_ros.salad.openlane_format import read_openlane
 from fhld_ros.salad.sim_source import (
     SEEDS_OWN,
-    Mounts,
-    add_mount_arguments,
-    camera_mounts,
+    DriveVariant,
+    add_variant_arguments,
+    drive_variant,
     salad_seeds,
 )
 from fhld_ros.salad.targets import lane_targets, row_statistics
@@ -76,7 +76,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the drives from this one of SALAD's training seeds on (a later "
                         'run renders drives no earlier run saw)')
     parser.add_argument('--frames', type=int, default=10, help='images per drive, 1 s apart')
-    add_mount_arguments(parser)
+    add_variant_arguments(parser)
     parser.add_argument('--once', type=Path, metavar='ROOT',
                         help='also train on an ONCE-3DLanes folder (its --once-split)')
     parser.add_argument('--once-split', default='train', choices=ONCE_SPLITS)
@@ -117,11 +117,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def build_cache(cache: Path, seeds: range, frames: int, camera: VirtualCamera, workers: int,
-                seconds: float | None = None, mounts: Mounts = SEEDS_OWN) -> None:
+                seconds: float | None = None, variant: DriveVariant = SEEDS_OWN) -> None:
     """The shards of the seeds' drives not yet in cache; seconds: stop rendering then, and
-    leave the unfinished drives out; mounts: where the cameras sit (--camera-height, -side)."""
+    leave the unfinished drives out; variant: where the cameras sit and how the roads look
+    (--camera-height, --camera-side, --road-look)."""
     cache.mkdir(parents=True, exist_ok=True)
-    paths = {s: simulated_shard_path(cache, s, mounts) for s in seeds}
+    paths = {s: simulated_shard_path(cache, s, variant) for s in seeds}
     todo = [s for s in seeds if not paths[s].exists()]
     if not todo:
         return
@@ -129,7 +130,7 @@ def build_cache(cache: Path, seeds: range, frames: int, camera: VirtualCamera, w
     start = time.monotonic()
     with multiprocessing.Pool(max(workers, 1)) as pool:  # leaving it terminates the workers
         rendering = pool.starmap_async(simulated_shard, [(cache, s, frames, camera,
-                                                          mounts) for s in todo],
+                                                          variant) for s in todo],
                                        chunksize=1)
         rendering.wait(seconds)
         if rendering.ready():
@@ -256,10 +257,10 @@ def run(args: argparse.Namespace) -> int:
         seeds = salad_seeds('train', args.drives, args.first_drive)
     except ValueError as exc:
         raise ConfigError(f'--drives / --first-drive: {exc}') from None
-    mounts = camera_mounts(args)
+    variant = drive_variant(args)
     model, state, camera = _start(args)  # its camera decides how the images are resampled
     build_cache(cache, seeds, args.frames, camera, args.workers,
-                None if end is None else args.render_share * 60.0 * args.minutes, mounts)
+                None if end is None else args.render_share * 60.0 * args.minutes, variant)
     build_datasets(cache, args, camera)
     try:
         samples = ShardSamples(finished_shards(cache), camera)
@@ -279,7 +280,7 @@ def run(args: argparse.Namespace) -> int:
             'datasets': dataset_sources(cache),
             **({'first_drive': args.first_drive} if args.first_drive else {}),
             **({'minutes': args.minutes} if args.minutes else {}),
-            **mounts.meta(),
+            **variant.meta(),
             **({'bf16': True} if args.bf16 else {}),
             **{key: state[key] for key in ('init', 'init_steps') if key in state}}
     train_s = None if end is None else end - time.monotonic() - SAVE_MARGIN_S
