@@ -126,8 +126,17 @@ def test_weights_train_on_a_wider_view_and_a_cache_keeps_its_width(tmp_path, cap
     assert 'a resumed run keeps its camera (640 px wide)' in capsys.readouterr().err
 
 
-def test_bfloat16_training_moves_float32_weights(tmp_path):
+def test_bfloat16_training_moves_float32_weights(tmp_path, monkeypatch, capsys):
+    from fhld_ros.salad import train
+    assert train.cpu_bf16_flags('flags\t\t: fpu avx2 avx512f avx512_bf16\nflags : amx_bf16') \
+        == {'avx512_bf16', 'amx_bf16'}
+    assert train.cpu_bf16_flags('flags\t\t: fpu sse avx2 fma\n') == set()
     out = tmp_path / 'run'
+    monkeypatch.setattr(train, 'cpu_bf16_flags', lambda: set())  # an AVX2 CPU: refused
+    assert main(['salad-train', str(out), '--drives', '1', '--frames', '1', '--steps', '2',
+                 '--bf16']) == 2
+    assert 'no bfloat16 instructions' in capsys.readouterr().err and not out.exists()
+    monkeypatch.setattr(train, 'cpu_bf16_flags', lambda: {'avx512_bf16'})
     assert main(['salad-train', str(out), '--drives', '1', '--frames', '1', '--steps', '2',
                  '--batch', '1', '--workers', '0', '--threads', '1', '--bf16',
                  '--init', str(DEFAULT_SALAD_CHECKPOINT)]) == 0

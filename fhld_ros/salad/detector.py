@@ -23,6 +23,7 @@ from fhld_ros.errors import ConfigError
 from fhld_ros.model.inference import serving_graph
 from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT, load_salad
 from fhld_ros.salad.decode import decode
+from fhld_ros.salad.paint_evidence import MIN_CONTRAST, painted
 from fhld_ros.salad.road_plane import RoadPlane
 from fhld_ros.salad.virtual_camera import warm_sampler
 
@@ -36,11 +37,14 @@ class SaladDetector:
     on 2 cores ran the network up to 40x slower); the few torch ops around the network run on
     one thread unless threads says more. flip_average: average the maps of the image and its
     mirror image (see the module doc); road_profile: pull the lane cells' depths towards the
-    image's road profile (road_profile.py)."""
+    image's road profile (road_profile.py); min_paint_contrast: drop the lanes whose pixels are
+    not this many times as bright as the road on each side of them (paint_evidence.py; 0 off).
+    """
 
     def __init__(self, checkpoint: str | os.PathLike = DEFAULT_SALAD_CHECKPOINT,
                  threads: int = 0, runtime: str = 'auto', flip_average: bool = False,
-                 road_profile: bool = True) -> None:
+                 road_profile: bool = True,
+                 min_paint_contrast: float = MIN_CONTRAST) -> None:
         torch.set_num_threads(threads or 1)
         self.model, self.info = load_salad(checkpoint)
         self.cfg = self.model.cfg
@@ -49,6 +53,8 @@ class SaladDetector:
         except ValueError as exc:
             raise ConfigError(str(exc)) from exc
         self.flip_average, self.road_profile = flip_average, road_profile
+        self.min_paint_contrast = min_paint_contrast
+        self.warped: np.ndarray | None = None  # the last image, as the virtual camera sees it
         camera = self.cfg.camera  # the graph is built now, not on the first image (~1 s)
         # the graph is bound to the shape it is built for: that of batch()
         self.network(self.batch(np.zeros((camera.height, camera.width, 3), dtype=np.uint8)))
@@ -61,8 +67,9 @@ class SaladDetector:
         """The network's maps of one image (its lens distortion, if any, removed by the warp):
         lane probability (h, w) and spatial (3, h, w)."""
         start = time.perf_counter()
-        x = self.batch(self.cfg.camera.warp(np.asarray(image), np.asarray(intrinsics),
-                                            distortion))
+        self.warped = self.cfg.camera.warp(np.asarray(image), np.asarray(intrinsics),
+                                           distortion)
+        x = self.batch(self.warped)
         warp_done = time.perf_counter()
         seg, spatial = self.network(x)
         prob = torch.sigmoid(seg[:, 0])
@@ -90,6 +97,14 @@ class SaladDetector:
         (a Lens, or plumb_bob coefficients), if any."""
         prob, spatial = self.maps(image, intrinsics, distortion)
         start = time.perf_counter()
-        lanes, scores = decode(prob, spatial, self.cfg, road, self.road_profile)
+        lanes, scores = self.decode(prob, spatial, road)
         self.timings_ms['decode_ms'] = (time.perf_counter() - start) * 1e3
         return lanes, scores
+
+    def decode(self, prob: np.ndarray, spatial: np.ndarray, road: RoadPlane | None = None
+               ) -> tuple[list[np.ndarray], np.ndarray]:
+        """The lanes of the last image's maps (or maps made from it), those without paint
+        dropped (min_paint_contrast)."""
+        lanes, scores = decode(prob, spatial, self.cfg, road, self.road_profile)
+        keep = painted(lanes, self.warped, self.cfg.camera, self.min_paint_contrast)
+        return [lane for lane, kept in zip(lanes, keep) if kept], scores[keep]

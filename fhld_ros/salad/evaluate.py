@@ -43,6 +43,7 @@ from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT
 from fhld_ros.salad.detector import SaladDetector
 from fhld_ros.salad.once_format import read_once
 from fhld_ros.salad.openlane_format import read_openlane
+from fhld_ros.salad.paint_evidence import add_contrast_argument
 from fhld_ros.salad.perfect_maps import HEADS, PerfectMaps
 from fhld_ros.salad.sample import CameraLaneSample
 from fhld_ros.salad.sim_source import (
@@ -83,6 +84,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--no-road-profile', dest='road_profile', action='store_false',
                         help="the network's depths as they are, not pulled towards one road "
                              'depth per image row')
+    add_contrast_argument(parser)
     parser.add_argument('--road-plane', type=float, default=0.0, metavar='M',
                         help="the near lanes' depth from the road plane of the camera's known "
                              'mount (simulated drives), up to M metres (0: off; 20 chosen on '
@@ -189,6 +191,7 @@ def run(args: argparse.Namespace) -> int:
                           '--workers >= 1')
     variant = drive_variant(args)
     detector = SaladDetector(args.checkpoint, flip_average=args.flip_average,
+                             min_paint_contrast=args.min_paint_contrast,
                              road_profile=args.road_profile)
     perfect = PerfectMaps(detector, args.perfect) if args.perfect else None
     sources = {}

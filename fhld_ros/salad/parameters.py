@@ -12,6 +12,7 @@ from pathlib import Path
 from fhld_ros.dataclass_dict import documented, field_problems
 from fhld_ros.errors import ConfigError
 from fhld_ros.parameters import load_params_yaml
+from fhld_ros.salad.paint_evidence import MIN_CONTRAST
 
 NODE_NAME = 'camera_lane_detector'
 IDENTITY = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
@@ -59,6 +60,10 @@ class CameraParams:
         True, "pull the lane depths half way to the one road depth per image row that they "
         "share (no mount needed; a road's cross slope is fitted too); false = the network's "
         'depths as they are')
+    min_paint_contrast: float = documented(
+        MIN_CONTRAST, "lanes whose pixels are not this many times as bright as the road on "
+        'each side of them are dropped: no lanes along kerbs, barriers or sidewalk edges '
+        '(0.0 = off)', range='[0, 100]')
     rate_hz: float = documented(
         10.0, 'detection rate on image stamps: an image at least 0.9 / rate_hz newer than the '
         'last detected one is detected, the others are skipped', range='(0, 1000]')

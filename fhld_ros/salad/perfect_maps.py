@@ -9,7 +9,6 @@ from collections.abc import Iterable, Iterator
 
 import numpy as np
 
-from fhld_ros.salad.decode import decode
 from fhld_ros.salad.detector import SaladDetector
 from fhld_ros.salad.road_plane import RoadPlane
 from fhld_ros.salad.sample import CameraLaneSample
@@ -49,4 +48,4 @@ class PerfectMaps:
         if 'depth' in self.heads:
             spatial[2] = np.where(target.depth_mask, cfg.depth_residual(target.depth),
                                   spatial[2])
-        return decode(prob, spatial, cfg, road, self.detector.road_profile)
+        return self.detector.decode(prob, spatial, road)
