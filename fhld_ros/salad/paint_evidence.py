@@ -65,13 +65,12 @@ def painted(lanes: list[np.ndarray], image: np.ndarray, camera: VirtualCamera,
 
 def _near_points(lanes: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The lanes' points within NEAR_M, the unit vector across each on the road, its lane."""
-    long = [lane for lane in lanes if len(lane) >= 2]
-    index = [i for i, lane in enumerate(lanes) if len(lane) >= 2]
+    long = {i: lane for i, lane in enumerate(lanes) if len(lane) >= 2}
     if not long:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, dtype=int)
-    points = np.concatenate(long)
-    lane = np.repeat(index, [len(p) for p in long])
-    tangent = np.concatenate([np.gradient(p, axis=0) for p in long])
+    points = np.concatenate(list(long.values()))
+    lane = np.repeat(list(long), [len(p) for p in long.values()])
+    tangent = np.concatenate([np.gradient(p, axis=0) for p in long.values()])
     across = np.stack([tangent[:, 2], np.zeros(len(points)), -tangent[:, 0]], axis=1)
     across /= np.maximum(np.linalg.norm(across, axis=1, keepdims=True), 1e-9)
     near = (points[:, 2] >= NEAR_M[0]) & (points[:, 2] <= NEAR_M[1])
