@@ -227,6 +227,7 @@ class RoadDetector:
 
     cfg = SaladConfig()
     timings_ms = {'warp_ms': 1.0}
+    lanes_unpainted = 2  # and two more, without paint beside them
 
     def __init__(self) -> None:
         self.roads: list[RoadPlane | None] = []
@@ -474,6 +475,7 @@ def test_images_are_detected_at_rate_hz_on_their_stamps():
             detected.append(k)
     assert detected == [0, 3, 6]
     assert pipeline.counters['images_skipped'] == 6
+    assert pipeline.counters['lanes_unpainted'] == 3 * RoadDetector.lanes_unpainted
     # two due images before a detection: the newer wins, the older is overtaken (a drop)
     assert pipeline.receive_image(_image(400_000_000)).due
     intake = pipeline.receive_image(_image(500_000_000))

@@ -339,6 +339,10 @@ def test_perfect_maps_score_what_the_decoding_makes_of_the_targets(tmp_path):
     assert score(every, every.over(samples))['tau_0.15']['F1'] == 100.0
     no_depth = PerfectMaps(detector, ['seg', 'offsets'])
     assert score(no_depth, no_depth.over(samples))['tau_0.15']['F1'] < 100.0
+    checked = SaladDetector(tmp_path / 'salad.pt')  # the check on: the grey road shows none
+    every = PerfectMaps(checked, HEADS)
+    assert score(every, every.over(samples))['tau_0.30']['F1'] == 0.0
+    assert checked.lanes_unpainted == len(lanes)  # counted for the node's diagnostics
     with pytest.raises(ValueError, match='unknown heads'):
         PerfectMaps(detector, ['depth', 'colour'])
 

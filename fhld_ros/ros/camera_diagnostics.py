@@ -6,7 +6,9 @@ shares): OK, WARN or ERROR judged only on the last window_sec seconds, every tri
 named, 'running' when none is.
 Drops are bad images, images overtaken (due, but a newer one came before the detector was free)
 and images DDS lost on the way; images left out on purpose (a 30 Hz camera at rate_hz 10) are
-not drops. latency_ms = image arrival (its callback) -> its lanes published. Stage medians (ms):
+not drops; nor are lanes_unpainted, the decoded lanes the paint check dropped
+(salad/paint_evidence.py: along kerbs, not paint), counted since start. latency_ms = image
+arrival (its callback) -> its lanes published. Stage medians (ms):
 image_decode = message -> array, wait = arrival -> detection start, warp / model / decode =
 SaladDetector's stages, output = frames, ids and outline, publish = the three messages.
 window_lanes_plane_height_m: the median height of the camera over the plane its lanes span;

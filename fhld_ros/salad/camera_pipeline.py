@@ -233,7 +233,8 @@ class CameraPipeline:
         self.ids = LaneIdTracker()
         self.output_frame: str | None = None
         self.counters = {'images': 0, 'camera_infos': 0, 'detections': 0, 'images_skipped': 0,
-                         'images_overtaken': 0, 'bad_images': 0, 'bad_camera_info': 0}
+                         'images_overtaken': 0, 'bad_images': 0, 'bad_camera_info': 0,
+                         'lanes_unpainted': 0}
 
     def receive_camera_info(self, msg: Any) -> ValueError | None:
         """add_camera_info; a bad message is counted (bad_camera_info) and returned: images
@@ -326,6 +327,7 @@ class CameraPipeline:
         pitch = lanes_pitch([lanes_optical[i] for i in keep], self.detector.cfg.camera)
         outline = self.outline(image.camera, plane)
         self.counters['detections'] += 1
+        self.counters['lanes_unpainted'] += self.detector.lanes_unpainted
         timings = dict(self.detector.timings_ms)
         timings['output_ms'] = (time.perf_counter() - start) * 1e3
         return LaneOutput(

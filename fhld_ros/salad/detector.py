@@ -55,6 +55,7 @@ class SaladDetector:
         self.flip_average, self.road_profile = flip_average, road_profile
         self.min_paint_contrast = min_paint_contrast
         self.warped: np.ndarray | None = None  # the last image, as the virtual camera sees it
+        self.lanes_unpainted = 0  # the last image's decoded lanes the paint check dropped
         camera = self.cfg.camera  # the graph is built now, not on the first image (~1 s)
         # the graph is bound to the shape it is built for: that of batch()
         self.network(self.batch(np.zeros((camera.height, camera.width, 3), dtype=np.uint8)))
@@ -107,4 +108,5 @@ class SaladDetector:
         dropped (min_paint_contrast)."""
         lanes, scores = decode(prob, spatial, self.cfg, road, self.road_profile)
         keep = painted(lanes, self.warped, self.cfg.camera, self.min_paint_contrast)
+        self.lanes_unpainted = int(np.count_nonzero(~keep))
         return [lane for lane, kept in zip(lanes, keep) if kept], scores[keep]
