@@ -361,6 +361,21 @@ def test_the_error_by_range_is_where_the_lanes_are_off():
     assert rows['tau_0.30']['F1'] == 100.0
 
 
+def test_labels_are_scored_within_the_range_salad_decodes():
+    # real labels run to 67-122 m (OpenLane's), SALAD decodes to 60 m: scored whole, each
+    # label's last 60 m would count against the lane in the chamfer distance
+    z = np.linspace(3.0, 120.0, 400)
+    labels = [np.column_stack([np.full_like(z, x), np.full_like(z, 1.6), z])
+              for x in (-1.75, 1.75)]
+    beyond = labels[0][z > 70.0] + [3.5, 0.0, 0.0]  # seen only past the top view compared
+    decoded = [lane[lane[:, 2] <= 60.0] for lane in labels]
+    image = np.zeros((CAMERA.height, CAMERA.width, 3), dtype=np.uint8)
+    rows = score(lambda image, k, road=None, distortion=None: (decoded, np.ones(2)),
+                 [CameraLaneSample(image, CAMERA.intrinsics, [*labels, beyond], 'long')])
+    for row in ('tau_0.15', 'official'):
+        assert rows[row]['gt'] == 2 and rows[row]['F1'] == 100.0, rows[row]
+
+
 def test_config_values_are_checked_where_declared():
     SaladConfig().validate()
     for bad, message in (({'seg_threshold': 1.5}, 'seg_threshold must be'),

@@ -15,7 +15,10 @@ own pitch, where the network's road is off that height; lanes_road.py). `--camer
 moves every drive's camera to M metres over the road (each keeps its pitch and lens; `LOW
 HIGH`: a range): how a mount outside the training range (1.2-2.0 m) fares.
 Lanes are compared in a camera-centred top view (metrics.py takes x forward, y left, z up:
-the optical frame turned, not moved).
+the optical frame turned, not moved), HALF_SIZE_M ahead and to each side: the GT is scored
+within it (clipped), the range SALAD decodes (SaladConfig.max_depth_m) and the simulated GT
+keeps. Real labels run further (OpenLane's to 67-122 m), and the unilateral chamfer distance of
+a lane labelled to 120 m would count its last 60 m against any lane decoded to 60 m.
 """
 from __future__ import annotations
 
@@ -34,6 +37,7 @@ from fhld_ros.errors import ConfigError
 from fhld_ros.evaluation.metrics import (
     SAMPLE_STEP,
     LaneCounts,
+    clip_lanes_to_square,
     lane_counts,
     once_counts_official,
     once_matches,
@@ -56,7 +60,7 @@ from fhld_ros.salad.sim_source import (
 )
 
 TAUS = (0.15, 0.30, 0.50)
-HALF_SIZE_M = 60.0  # the top view compared: 60 m ahead, 60 m to each side
+HALF_SIZE_M = 60.0  # the top view compared (and the GT scored): 60 m ahead, to each side
 RANGE_EDGES_M = np.arange(0.0, 61.0, 10.0)
 RANGE_STEP_M = 0.1  # GT points this far apart for the error by range
 
@@ -119,7 +123,8 @@ def score(detector: SaladDetector, samples: Iterable[CameraLaneSample],
                 if road_until_m > 0 and sample.road is not None else None)
         lanes, scores = detector(sample.image, sample.intrinsics, road, sample.distortion)
         pred = [optical_to_window(lane) for lane in lanes]
-        gt = [optical_to_window(lane) for lane in sample.lanes if len(lane) >= 2]
+        gt = clip_lanes_to_square([optical_to_window(lane) for lane in sample.lanes
+                                   if len(lane) >= 2], HALF_SIZE_M)
         matches = once_matches(pred, gt, HALF_SIZE_M)  # one assignment for every tau
         for tau in TAUS:
             counts[tau] = counts[tau] + lane_counts(matches, len(pred), len(gt), tau)
