@@ -27,8 +27,8 @@ fragments); keys camera_live_project_*, camera_live_default_*.
 
 Both use the shipped fhld_ros/checkpoints/salad.pt; where it is absent an untrained model of
 SaladConfig's defaults (row statistics of the bench image) stands in, and camera_weights says
-so: the timings of warp and network depend on the view's width (the defaults' 640 px, the
-shipped weights' 480), not on the weights, but such a model finds no lanes, so its
+so: the timings of warp and network depend on the view's width (640 px, the defaults' and
+the shipped weights'), not on the weights, but such a model finds no lanes, so its
 camera_e2e_ms decodes none (camera_decode_ms has the cost).
 """
 from __future__ import annotations
