@@ -23,6 +23,7 @@ from fhld_ros.errors import ConfigError
 from fhld_ros.model.inference import serving_graph
 from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT, load_salad
 from fhld_ros.salad.decode import decode
+from fhld_ros.salad.double_lines import split_double_lines
 from fhld_ros.salad.paint_evidence import MIN_CONTRAST, painted
 from fhld_ros.salad.road_plane import RoadPlane
 from fhld_ros.salad.virtual_camera import warm_sampler
@@ -38,13 +39,14 @@ class SaladDetector:
     one thread unless threads says more. flip_average: average the maps of the image and its
     mirror image (see the module doc); road_profile: pull the lane cells' depths towards the
     image's road profile (road_profile.py); min_paint_contrast: drop the lanes whose pixels are
-    not this many times as bright as the road on each side of them (paint_evidence.py; 0 off).
+    not this many times as bright as the road on each side of them (paint_evidence.py; 0 off);
+    double_lines: split the lanes whose pixels show two stripes (double_lines.py).
     """
 
     def __init__(self, checkpoint: str | os.PathLike = DEFAULT_SALAD_CHECKPOINT,
                  threads: int = 0, runtime: str = 'auto', flip_average: bool = False,
-                 road_profile: bool = True,
-                 min_paint_contrast: float = MIN_CONTRAST) -> None:
+                 road_profile: bool = True, min_paint_contrast: float = MIN_CONTRAST,
+                 double_lines: bool = True) -> None:
         torch.set_num_threads(threads or 1)
         self.model, self.info = load_salad(checkpoint)
         self.cfg = self.model.cfg
@@ -53,7 +55,7 @@ class SaladDetector:
         except ValueError as exc:
             raise ConfigError(str(exc)) from exc
         self.flip_average, self.road_profile = flip_average, road_profile
-        self.min_paint_contrast = min_paint_contrast
+        self.min_paint_contrast, self.double_lines = min_paint_contrast, double_lines
         self.warped: np.ndarray | None = None  # the last image, as the virtual camera sees it
         self.lanes_unpainted = 0  # the last image's decoded lanes the paint check dropped
         camera = self.cfg.camera  # the graph is built now, not on the first image (~1 s)
@@ -105,8 +107,11 @@ class SaladDetector:
     def decode(self, prob: np.ndarray, spatial: np.ndarray, road: RoadPlane | None = None
                ) -> tuple[list[np.ndarray], np.ndarray]:
         """The lanes of the last image's maps (or maps made from it), those without paint
-        dropped (min_paint_contrast)."""
+        dropped (min_paint_contrast), double lines split (double_lines)."""
         lanes, scores = decode(prob, spatial, self.cfg, road, self.road_profile)
         keep = painted(lanes, self.warped, self.cfg.camera, self.min_paint_contrast)
         self.lanes_unpainted = int(np.count_nonzero(~keep))
-        return [lane for lane, kept in zip(lanes, keep) if kept], scores[keep]
+        lanes = [lane for lane, kept in zip(lanes, keep) if kept]
+        if not self.double_lines:
+            return lanes, scores[keep]
+        return split_double_lines(lanes, scores[keep], self.warped, self.cfg.camera)

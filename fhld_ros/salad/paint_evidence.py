@@ -45,13 +45,13 @@ def painted(lanes: list[np.ndarray], image: np.ndarray, camera: VirtualCamera,
     if min_contrast <= 0 or not lanes:
         return keep
     image = np.asarray(image)
-    points, across, lane = _near_points(lanes)
+    points, across, lane = near_points(lanes, NEAR_M)
     if not len(points):
         return keep
-    paint = _sample(points[:, None] + ACROSS_M[:, None] * across[:, None], image, camera)
+    paint = brightness(points[:, None] + ACROSS_M[:, None] * across[:, None], image, camera)
     paint = paint.max(axis=1)
-    left, right = (_sample(points[:, None] + sign * ROAD_BESIDE_M[:, None] * across[:, None],
-                           image, camera) for sign in (-1.0, 1.0))
+    left, right = (brightness(points[:, None] + sign * ROAD_BESIDE_M[:, None] *
+                              across[:, None], image, camera) for sign in (-1.0, 1.0))
     for i in np.unique(lane):
         mine = lane == i
         on, sides = paint[mine], (left[mine], right[mine])
@@ -63,21 +63,29 @@ def painted(lanes: list[np.ndarray], image: np.ndarray, camera: VirtualCamera,
     return keep
 
 
-def _near_points(lanes: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The lanes' points within NEAR_M, the unit vector across each on the road, its lane."""
+def near_points(lanes: list[np.ndarray], near_m: tuple[float, float]
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The lanes' points within near_m (optical z), the unit vector across each on the road
+    (to the right), its lane's index."""
     long = {i: lane for i, lane in enumerate(lanes) if len(lane) >= 2}
     if not long:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, dtype=int)
     points = np.concatenate(list(long.values()))
     lane = np.repeat(list(long), [len(p) for p in long.values()])
-    tangent = np.concatenate([np.gradient(p, axis=0) for p in long.values()])
-    across = np.stack([tangent[:, 2], np.zeros(len(points)), -tangent[:, 0]], axis=1)
-    across /= np.maximum(np.linalg.norm(across, axis=1, keepdims=True), 1e-9)
-    near = (points[:, 2] >= NEAR_M[0]) & (points[:, 2] <= NEAR_M[1])
+    across = np.concatenate([across_road(p) for p in long.values()])
+    near = (points[:, 2] >= near_m[0]) & (points[:, 2] <= near_m[1])
     return points[near], across[near], lane[near]
 
 
-def _sample(points: np.ndarray, image: np.ndarray, camera: VirtualCamera) -> np.ndarray:
+def across_road(lane: np.ndarray) -> np.ndarray:
+    """(N, 3): the unit vector across a lane (N >= 2 points, optical frame) on the road at each
+    of its points, to the right."""
+    tangent = np.gradient(lane, axis=0)
+    across = np.stack([tangent[:, 2], np.zeros(len(lane)), -tangent[:, 0]], axis=1)
+    return across / np.maximum(np.linalg.norm(across, axis=1, keepdims=True), 1e-9)
+
+
+def brightness(points: np.ndarray, image: np.ndarray, camera: VirtualCamera) -> np.ndarray:
     """The brightest channel of the image's pixels at the projections of points (..., 3), -1
     outside the image or behind it."""
     z = points[..., 2]
