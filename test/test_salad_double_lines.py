@@ -55,3 +55,10 @@ def test_no_lanes_or_none_near_leave_nothing_to_split():
     far = _lane(-1.75)[80:]  # 43 m on: the stripes are not told apart there, nor tested
     lanes, scores = split_double_lines([far], np.array([0.7]), image, CAMERA)
     assert len(lanes) == 1 and lanes[0] is far
+
+
+def test_the_node_takes_the_switch():
+    from fhld_ros.salad.camera_pipeline import load_camera_detector
+    from fhld_ros.salad.parameters import CameraParams
+    assert CameraParams().double_lines
+    assert not load_camera_detector(CameraParams(double_lines=False)).double_lines

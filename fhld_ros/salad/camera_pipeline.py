@@ -104,14 +104,13 @@ class ImageIntake:
 
 def load_camera_detector(params: CameraParams) -> SaladDetector:
     """SaladDetector as the parameters ask: their checkpoint ('' = the shipped weights),
-    model_threads, model_runtime, flip_average, road_profile and min_paint_contrast; ConfigError
-    naming the file
-    when it is missing or unusable."""
+    model_threads, model_runtime, flip_average, road_profile, min_paint_contrast and
+    double_lines; ConfigError naming the file when it is missing or unusable."""
     checkpoint = params.checkpoint
     try:
         return SaladDetector(checkpoint or DEFAULT_SALAD_CHECKPOINT, params.model_threads,
                              params.model_runtime, params.flip_average, params.road_profile,
-                             params.min_paint_contrast)
+                             params.min_paint_contrast, params.double_lines)
     except ConfigError as exc:
         if checkpoint:
             raise

@@ -64,6 +64,9 @@ class CameraParams:
         MIN_CONTRAST, "lanes whose pixels are not this many times as bright as the road on "
         'each side of them are dropped: no lanes along kerbs, barriers or sidewalk edges '
         '(0.0 = off)', range='[0, 100]')
+    double_lines: bool = documented(
+        True, 'split a lane whose near pixels show two stripes side by side (a double centre '
+        'line) into one lane per stripe; false = one lane between them')
     rate_hz: float = documented(
         10.0, 'detection rate on image stamps: an image at least 0.9 / rate_hz newer than the '
         'last detected one is detected, the others are skipped', range='(0, 1000]')
