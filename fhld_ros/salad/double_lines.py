@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fhld_ros.salad.paint_evidence import across_road, brightness, near_points
+from fhld_ros.salad.paint_evidence import across_brightness, across_road, near_points
 from fhld_ros.salad.virtual_camera import VirtualCamera
 
 NEAR_M = (4.0, 15.0)
@@ -43,16 +43,15 @@ def split_double_lines(lanes: list[np.ndarray], scores: np.ndarray, image: np.nd
     points, across, lane = near_points(lanes, NEAR_M)
     if not len(points):
         return lanes, scores
-    profile = brightness(points[:, None] + ACROSS_M[:, None] * across[:, None],
-                         np.asarray(image), camera).astype(np.float64)
-    beside = np.concatenate([brightness(points[:, None] + sign * ROAD_BESIDE_M[:, None] *
-                                        across[:, None], np.asarray(image), camera)
-                             for sign in (-1.0, 1.0)], axis=1).astype(np.float64)
+    image = np.asarray(image)
+    profile = across_brightness(points, across, ACROSS_M, image, camera).astype(np.float64)
+    beside = across_brightness(points, across, np.concatenate([-ROAD_BESIDE_M, ROAD_BESIDE_M]),
+                               image, camera).astype(np.float64)
     centre, separation = _two_stripes(profile, beside)
+    in_view = profile.min(axis=1) >= 0
     out_lanes, out_scores = [], []
     for i, (points_i, score) in enumerate(zip(lanes, scores)):
-        mine = lane == i
-        tested = mine & (profile.min(axis=1) >= 0)
+        tested = (lane == i) & in_view
         double = tested & np.isfinite(separation)
         if tested.sum() < MIN_POINTS or double.sum() < MIN_SHARE * tested.sum():
             out_lanes.append(points_i)

@@ -48,10 +48,9 @@ def painted(lanes: list[np.ndarray], image: np.ndarray, camera: VirtualCamera,
     points, across, lane = near_points(lanes, NEAR_M)
     if not len(points):
         return keep
-    paint = brightness(points[:, None] + ACROSS_M[:, None] * across[:, None], image, camera)
-    paint = paint.max(axis=1)
-    left, right = (brightness(points[:, None] + sign * ROAD_BESIDE_M[:, None] *
-                              across[:, None], image, camera) for sign in (-1.0, 1.0))
+    paint = across_brightness(points, across, ACROSS_M, image, camera).max(axis=1)
+    left, right = (across_brightness(points, across, sign * ROAD_BESIDE_M, image, camera)
+                   for sign in (-1.0, 1.0))
     for i in np.unique(lane):
         mine = lane == i
         on, sides = paint[mine], (left[mine], right[mine])
@@ -83,6 +82,13 @@ def across_road(lane: np.ndarray) -> np.ndarray:
     tangent = np.gradient(lane, axis=0)
     across = np.stack([tangent[:, 2], np.zeros(len(lane)), -tangent[:, 0]], axis=1)
     return across / np.maximum(np.linalg.norm(across, axis=1, keepdims=True), 1e-9)
+
+
+def across_brightness(points: np.ndarray, across: np.ndarray, offsets_m: np.ndarray,
+                      image: np.ndarray, camera: VirtualCamera) -> np.ndarray:
+    """(P, len(offsets_m)): brightness (as brightness()) offsets_m along each point's across
+    vector on the road."""
+    return brightness(points[:, None] + offsets_m[:, None] * across[:, None], image, camera)
 
 
 def brightness(points: np.ndarray, image: np.ndarray, camera: VirtualCamera) -> np.ndarray:
