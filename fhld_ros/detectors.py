@@ -37,6 +37,9 @@ class Encoded(Generic[T]):
     def __init__(self, detect: Callable[[BevWindow], T], intensity_encoding: str) -> None:
         self.detect = detect
         self.intensity_encoding = intensity_encoding
+        # the last window's lanes its paint check dropped (none without one): LanePipeline
+        # counts them for the diagnostics
+        self.lanes_unpainted = 0
 
     def __call__(self, window: BevWindow) -> T:
         return self.detect(window)
@@ -98,18 +101,29 @@ def fhld_detector(params: DetectorParams) -> Encoded[tuple[list[np.ndarray], np.
 
     def detect(window: BevWindow) -> tuple[list[np.ndarray], np.ndarray]:
         found = detections(window)
-        return with_evidence(found.lanes, found.confidences, window, params)
-    return Encoded(detect, detections.intensity_encoding)
+        lanes, confidences, encoded.lanes_unpainted = evidence_checked(
+            found.lanes, found.confidences, window, params)
+        return lanes, confidences
+    encoded = Encoded(detect, detections.intensity_encoding)
+    return encoded
+
+
+def evidence_checked(lanes: list[np.ndarray], confidences: np.ndarray, window: BevWindow,
+                     params: DetectorParams) -> tuple[list[np.ndarray], np.ndarray, int]:
+    """The lanes cut to observed ground (params.evidence_reach_m), then those without paint
+    dropped (params.min_paint_contrast): evidence.py. Also how many the paint check dropped."""
+    res = window.spec.resolution_m
+    lanes, confidences = keep_observed(lanes, confidences, window.raster, res,
+                                       params.evidence_reach_m)
+    painted, confidences = keep_painted(lanes, confidences, window.raster, res,
+                                        params.min_paint_contrast)
+    return painted, confidences, len(lanes) - len(painted)
 
 
 def with_evidence(lanes: list[np.ndarray], confidences: np.ndarray, window: BevWindow,
                   params: DetectorParams) -> tuple[list[np.ndarray], np.ndarray]:
-    """The lanes cut to observed ground (params.evidence_reach_m), then those without paint
-    dropped (params.min_paint_contrast): evidence.py."""
-    res = window.spec.resolution_m
-    lanes, confidences = keep_observed(lanes, confidences, window.raster, res,
-                                       params.evidence_reach_m)
-    return keep_painted(lanes, confidences, window.raster, res, params.min_paint_contrast)
+    """evidence_checked's lanes and confidences."""
+    return evidence_checked(lanes, confidences, window, params)[:2]
 
 
 def fhld_variants(params: DetectorParams,

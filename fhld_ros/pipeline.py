@@ -52,7 +52,8 @@ DUE_FRACTION = 0.9
 
 class LaneDetector(Protocol):
     """Lanes ((K, 3) window frame, ordered) and confidences of one window. A detector may name
-    the intensity encoding its windows need (attribute intensity_encoding, default absolute)."""
+    the intensity encoding its windows need (attribute intensity_encoding, default absolute),
+    and count the last window's lanes its paint check dropped (lanes_unpainted, default 0)."""
 
     def __call__(self, window: BevWindow) -> tuple[list[np.ndarray], np.ndarray]: ...
 
@@ -106,7 +107,8 @@ class LanePipeline:
         self.pending: collections.deque[tuple] = collections.deque()  # in stamp order
         self.counters = {'clouds': 0, 'odometry': 0, 'detections': 0, 'sweeps_skipped': 0,
                          'resets': 0, 'clouds_without_odometry': 0, 'odometry_timeouts': 0,
-                         'clouds_extrapolated': 0, 'bad_clouds': 0, 'bad_odometry': 0}
+                         'clouds_extrapolated': 0, 'bad_clouds': 0, 'bad_odometry': 0,
+                         'lanes_unpainted': 0}
 
     @property
     def uses_odometry(self) -> bool:
@@ -327,6 +329,7 @@ class LanePipeline:
         start = time.perf_counter()
         lanes_window, confidences = self.detector(window)
         detected = time.perf_counter()
+        self.counters['lanes_unpainted'] += getattr(self.detector, 'lanes_unpainted', 0)
         keep = [i for i, c in enumerate(confidences) if c >= self.params.score_threshold]
         lanes_window = [np.asarray(lanes_window[i], dtype=np.float64) for i in keep]
         confidences = np.asarray(confidences, dtype=np.float64)[keep]

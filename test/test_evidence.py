@@ -2,10 +2,13 @@
 where no paint shows."""
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
 from fhld_ros.bev import MIN_HEIGHT_HIGH_M, MIN_HEIGHT_LOW_M
+from fhld_ros.detectors import evidence_checked
 from fhld_ros.evidence import (
     _observed_count,
     _quantile,
@@ -15,6 +18,7 @@ from fhld_ros.evidence import (
     paint_contrast,
     stripe_contrast,
 )
+from fhld_ros.parameters import DetectorParams
 
 RES = 0.04
 SIZE = 640
@@ -114,6 +118,18 @@ def test_a_painted_line_keeps_its_lane_and_plain_road_does_not():
     # a ratio: the sensor's units and gain do not change it
     raster[0] *= 7.0
     assert paint_contrast(painted, raster, RES) == pytest.approx(2.0)
+
+
+def test_the_served_check_counts_the_lanes_without_paint_it_drops():
+    raster = road_raster()
+    raster[0, rows_between(1.68, 1.84)] = 2 * ROAD
+    window = SimpleNamespace(raster=raster, spec=SimpleNamespace(resolution_m=RES))
+    lanes = [straight_lane(y=1.75), straight_lane(y=-1.75), straight_lane(y=-5.25)]
+    params = DetectorParams(min_paint_contrast=1.3)
+    kept, conf, unpainted = evidence_checked(lanes, np.array([0.9, 0.8, 0.7]), window, params)
+    assert len(kept) == 1 and conf.tolist() == [0.9] and unpainted == 2
+    params = DetectorParams(min_paint_contrast=0.0)  # the check off: nothing dropped
+    assert evidence_checked(lanes, np.array([0.9, 0.8, 0.7]), window, params)[2] == 0
 
 
 def test_dashes_are_paint():

@@ -121,6 +121,17 @@ def test_lanes_come_out_in_the_odometry_frame_with_the_window_outline():
     assert pipeline.detect() is None  # nothing new since the last cycle
 
 
+def test_the_lanes_a_detector_dropped_for_want_of_paint_are_counted():
+    detector = FixedLanes([_line(1.8)], [0.9])
+    detector.lanes_unpainted = 2  # as fhld_detector's paint check reports them
+    pipeline = LanePipeline(DetectorParams(size_px=256, resolution_m=0.1), detector,
+                            expect_odometry=False)
+    for stamp_ns in (1_000_000_000, 1_100_000_000):
+        pipeline.add_cloud(_cloud(stamp_ns))
+        assert pipeline.detect() is not None
+    assert pipeline.counters['lanes_unpainted'] == 4
+
+
 def test_cloud_in_another_frame_uses_the_static_extrinsic():
     detector = FixedLanes([], [])
     params = DetectorParams(size_px=64, resolution_m=0.5, lidar_to_base=(1.0, 0, 2.0, 0, 0, 0))
