@@ -473,6 +473,21 @@ def test_salad_real_scores_each_image_against_its_own_lifted_labels(tmp_path, ca
     assert set(result['lanes']) == {'nuscenes_cam_front', 'pjlab_center_camera'}
 
 
+def test_the_commands_decode_as_the_node_unless_told_otherwise():
+    import argparse
+
+    from fhld_ros.salad.detector import add_decoding_arguments, decoding_options
+    from fhld_ros.salad.parameters import CameraParams
+
+    parser = argparse.ArgumentParser()
+    add_decoding_arguments(parser)
+    node = CameraParams()
+    assert decoding_options(parser.parse_args([])) == {
+        'min_paint_contrast': node.min_paint_contrast, 'double_lines': node.double_lines}
+    assert decoding_options(parser.parse_args(['--no-double-lines', '--min-paint-contrast', '0'])
+                            ) == {'min_paint_contrast': 0.0, 'double_lines': False}
+
+
 def test_training_can_start_from_shipped_weights(tmp_path):
     from fhld_ros.cli import main
     from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT

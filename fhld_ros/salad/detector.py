@@ -12,6 +12,7 @@ node over the 50 ms target on a 2-core CPU, and the row profile (road_profile.py
 pass past what the mirror average scored before it."""
 from __future__ import annotations
 
+import argparse
 import os
 import time
 
@@ -29,6 +30,21 @@ from fhld_ros.salad.road_plane import RoadPlane
 from fhld_ros.salad.virtual_camera import warm_sampler
 
 MIRROR_SIGN = torch.tensor([-1.0, 1.0, 1.0]).view(3, 1, 1)  # du, dv, dz of a mirrored map
+
+
+def add_decoding_arguments(parser: argparse.ArgumentParser) -> None:
+    """The decoding's checks, for the commands that run the detector (decoding_options)."""
+    parser.add_argument('--min-paint-contrast', type=float, default=MIN_CONTRAST, metavar='C',
+                        help='drop the lanes whose pixels are not C times as bright as the '
+                        'road on each side of them (0: off; default %(default)s, as the node)')
+    parser.add_argument('--no-double-lines', dest='double_lines', action='store_false',
+                        help='decode a double line as one lane (default: one per stripe, as '
+                        'the node)')
+
+
+def decoding_options(args: argparse.Namespace) -> dict:
+    """SaladDetector's keywords from add_decoding_arguments' options."""
+    return {'min_paint_contrast': args.min_paint_contrast, 'double_lines': args.double_lines}
 
 
 class SaladDetector:

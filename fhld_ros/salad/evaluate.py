@@ -44,10 +44,9 @@ from fhld_ros.evaluation.metrics import (
 )
 from fhld_ros.geometry import resample_polyline
 from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT
-from fhld_ros.salad.detector import SaladDetector
+from fhld_ros.salad.detector import SaladDetector, add_decoding_arguments, decoding_options
 from fhld_ros.salad.once_format import read_once
 from fhld_ros.salad.openlane_format import read_openlane
-from fhld_ros.salad.paint_evidence import add_contrast_argument
 from fhld_ros.salad.perfect_maps import HEADS, PerfectMaps
 from fhld_ros.salad.sample import CameraLaneSample
 from fhld_ros.salad.sim_source import (
@@ -88,7 +87,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--no-road-profile', dest='road_profile', action='store_false',
                         help="the network's depths as they are, not pulled towards one road "
                              'depth per image row')
-    add_contrast_argument(parser)
+    add_decoding_arguments(parser)
     parser.add_argument('--road-plane', type=float, default=0.0, metavar='M',
                         help="the near lanes' depth from the road plane of the camera's known "
                              'mount (simulated drives), up to M metres (0: off; 20 chosen on '
@@ -196,8 +195,7 @@ def run(args: argparse.Namespace) -> int:
                           '--workers >= 1')
     variant = drive_variant(args)
     detector = SaladDetector(args.checkpoint, flip_average=args.flip_average,
-                             min_paint_contrast=args.min_paint_contrast,
-                             road_profile=args.road_profile)
+                             road_profile=args.road_profile, **decoding_options(args))
     perfect = PerfectMaps(detector, args.perfect) if args.perfect else None
     sources = {}
     if args.drives:

@@ -15,8 +15,6 @@ side to tell (the image's edge).
 """
 from __future__ import annotations
 
-import argparse
-
 import numpy as np
 
 from fhld_ros.salad.virtual_camera import VirtualCamera
@@ -28,13 +26,6 @@ ROAD_BESIDE_M = np.array([0.4, 0.6, 0.8, 1.0])
 PAINT_QUANTILE = 0.8
 MIN_POINTS = 8  # fewer tested points on the lane or beside it on a side: no evidence, kept
 MIN_CONTRAST = 1.05  # the default (camera node, salad-eval, salad-real): docs/salad.md
-
-
-def add_contrast_argument(parser: argparse.ArgumentParser) -> None:
-    """--min-paint-contrast, for the commands that run the detector."""
-    parser.add_argument('--min-paint-contrast', type=float, default=MIN_CONTRAST, metavar='C',
-                        help='drop the lanes whose pixels are not C times as bright as the '
-                        'road on each side of them (0: off; default %(default)s, as the node)')
 
 
 def painted(lanes: list[np.ndarray], image: np.ndarray, camera: VirtualCamera,

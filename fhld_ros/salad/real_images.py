@@ -18,11 +18,10 @@ from PIL import Image
 
 from fhld_ros.errors import ConfigError
 from fhld_ros.salad.checkpoint import DEFAULT_SALAD_CHECKPOINT
-from fhld_ros.salad.detector import SaladDetector
+from fhld_ros.salad.detector import SaladDetector, add_decoding_arguments, decoding_options
 from fhld_ros.salad.evaluate import score
 from fhld_ros.salad.figure import draw_lanes
 from fhld_ros.salad.openlane_format import read_openlane
-from fhld_ros.salad.paint_evidence import add_contrast_argument
 from fhld_ros.salad.sample import CameraLaneSample
 
 DEFAULT_DIR = Path(__file__).resolve().parents[2].parent / 'shared' / 'real_scans'
@@ -32,7 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('dir', nargs='?', type=Path, default=DEFAULT_DIR,
                         help='the real_scans folder (default ../shared/real_scans)')
     parser.add_argument('--checkpoint', type=Path, default=DEFAULT_SALAD_CHECKPOINT)
-    add_contrast_argument(parser)
+    add_decoding_arguments(parser)
     parser.add_argument('--draw', type=Path, metavar='DIR', help='write <name>.jpg per image')
     parser.add_argument('--pjlab-gt', type=Path, metavar='JSON',
                         help="the PJLab image's lanes from its hand 2D labels lifted by `fhld "
@@ -72,7 +71,7 @@ def unlabelled_images(root: Path) -> Iterator[CameraLaneSample]:
 def run(args: argparse.Namespace) -> int:
     if not args.dir.is_dir():
         raise ConfigError(f'no real_scans folder at {args.dir}')
-    detector = SaladDetector(args.checkpoint, min_paint_contrast=args.min_paint_contrast)
+    detector = SaladDetector(args.checkpoint, **decoding_options(args))
     openlane = list(read_openlane(args.dir / 'openlane_examples')) \
         if (args.dir / 'openlane_examples').is_dir() else []
     results: dict = {}
