@@ -286,6 +286,35 @@ def test_the_model_learns_a_road():
     assert np.isfinite(last) and last < 0.5 * first, (first, last)
 
 
+def test_the_lane_depth_term_weighs_the_lane_cells_alone():
+    targets = lane_targets(_road(), CAMERA)
+    cfg = _config_for(targets.depth[None], targets.depth_mask[None])
+    batch = {'seg': torch.from_numpy(targets.seg)[None],
+             'offsets': torch.from_numpy(targets.offsets)[None],
+             'depth': torch.from_numpy(targets.depth)[None],
+             'depth_mask': torch.from_numpy(targets.depth_mask)[None]}
+    seg_logits, spatial = torch.zeros((1, 1, *targets.seg.shape)), torch.zeros(
+        (1, 3, *targets.seg.shape))
+    paper = SaladCriterion(cfg)(seg_logits, spatial, batch)
+    assert 'lane_depth' not in paper  # off by default: the paper's loss
+    criterion = SaladCriterion(dataclasses.replace(cfg, lane_depth_weight=0.5))
+    losses = criterion(seg_logits, spatial, batch)
+    assert float(losses['loss']) == pytest.approx(
+        float(paper['loss']) + 0.5 * float(losses['lane_depth']), rel=1e-6)
+    lane = targets.seg > 0.5
+    road = targets.depth_mask & ~lane
+    assert lane.any() and road.any()
+    off_lanes = spatial.clone()
+    off_lanes[0, 2][torch.from_numpy(road)] += 3.0  # the depth wrong between the lanes only
+    moved = criterion(seg_logits, off_lanes, batch)
+    assert float(moved['lane_depth']) == pytest.approx(float(losses['lane_depth']))
+    assert float(moved['depth']) > float(losses['depth'])
+    on_lanes = spatial.clone()
+    on_lanes[0, 2][torch.from_numpy(lane)] += 3.0
+    assert float(criterion(seg_logits, on_lanes, batch)['lane_depth']) > float(
+        losses['lane_depth'])
+
+
 def test_checkpoints_round_trip_with_weights_only_and_refuse_other_files(tmp_path):
     targets = lane_targets(_road(), CAMERA)
     model = SaladNet(_config_for(targets.depth[None], targets.depth_mask[None])).eval()
@@ -495,10 +524,11 @@ def test_training_can_start_from_shipped_weights(tmp_path):
     out = tmp_path / 'run'
     assert main(['salad-train', str(out), '--drives', '1', '--frames', '1', '--steps', '2',
                  '--batch', '1', '--workers', '1', '--threads', '1',
-                 '--init', str(DEFAULT_SALAD_CHECKPOINT)]) == 0
+                 '--init', str(DEFAULT_SALAD_CHECKPOINT), '--lane-depth-weight', '0.25']) == 0
     tuned, info = load_salad(out / 'salad.pt')
     shipped, _ = load_salad(DEFAULT_SALAD_CHECKPOINT)
-    assert tuned.cfg == shipped.cfg  # its row depth statistics, not this one image's
+    # its row depth statistics, not this one image's; the loss it was tuned with recorded
+    assert tuned.cfg == dataclasses.replace(shipped.cfg, lane_depth_weight=0.25)
     assert info['meta']['init'] == str(DEFAULT_SALAD_CHECKPOINT) and info['meta']['steps'] == 2
     assert info['meta']['init_steps'] == load_salad(DEFAULT_SALAD_CHECKPOINT)[1]['meta']['steps']
     moved = [not torch.equal(a, b) for a, b in zip(tuned.state_dict().values(),

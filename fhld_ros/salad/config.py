@@ -45,6 +45,13 @@ class SaladConfig:
                                      range='[0, 1000]')
     offset_weight: float = documented(1.0, 'lambda of paper eq. 6 for du, dv',
                                       range='[0, 1000]')
+    # the dense depth term is mostly road and near rows, and its smooth L1 nearly flat at the
+    # few per cent the lanes' depth is off by: this term weighs the lane cells alone, near L1
+    lane_depth_weight: float = documented(
+        0.0, "weight of a second depth term on the lane cells only (0: the paper's loss)",
+        range='[0, 1000]')
+    lane_depth_beta: float = documented(
+        0.1, "that term's smooth L1 beta, in depth residual units", range='(0, 10]')
 
     @property
     def grid(self) -> tuple[int, int]:

@@ -1,6 +1,8 @@
 """SALAD's loss (paper eq. 6-8): pixel-wise binary cross-entropy on the segmentation plus
 smooth L1 on the spatial branch: (du, dv) at lane cells, the depth residual wherever the
-completed depth is labelled (the dense map gives the depth head signal off the lanes too)."""
+completed depth is labelled (the dense map gives the depth head signal off the lanes too);
+with cfg.lane_depth_weight, the depth residual at the lane cells once more, near L1
+(docs/salad.md, "Depth weighed at the lanes")."""
 from __future__ import annotations
 
 import torch
@@ -33,16 +35,23 @@ class SaladCriterion(nn.Module):
         lane = seg > 0.5
         offset_loss = _masked_smooth_l1(spatial[:, :2], targets['offsets'], lane)
         residual = (targets['depth'] - self.shift) / self.scale
-        depth_loss = _masked_smooth_l1(spatial[:, 2:], residual[:, None], targets['depth_mask'])
+        depth_mask = targets['depth_mask']
+        depth_loss = _masked_smooth_l1(spatial[:, 2:], residual[:, None], depth_mask)
         total = (seg_loss + self.cfg.offset_weight * offset_loss
                  + self.cfg.depth_weight * depth_loss)
-        return {'loss': total, 'seg': seg_loss.detach(), 'offsets': offset_loss.detach(),
-                'depth': depth_loss.detach()}
+        losses = {'seg': seg_loss.detach(), 'offsets': offset_loss.detach(),
+                  'depth': depth_loss.detach()}
+        if self.cfg.lane_depth_weight > 0:
+            lane_depth = _masked_smooth_l1(spatial[:, 2:], residual[:, None], lane & depth_mask,
+                                           self.cfg.lane_depth_beta)
+            total = total + self.cfg.lane_depth_weight * lane_depth
+            losses['lane_depth'] = lane_depth.detach()
+        return {'loss': total, **losses}
 
 
-def _masked_smooth_l1(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
+def _masked_smooth_l1(pred: Tensor, target: Tensor, mask: Tensor, beta: float = 1.0) -> Tensor:
     """Mean smooth L1 over the masked cells ((B, C, h, w) against (B, h, w) mask); 0 when
     none is masked (an image without lanes)."""
     weight = mask[:, None].expand_as(pred).float()
-    loss = F.smooth_l1_loss(pred, target, reduction='none') * weight
+    loss = F.smooth_l1_loss(pred, target, reduction='none', beta=beta) * weight
     return loss.sum() / weight.sum().clamp(min=1.0)

@@ -106,6 +106,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the virtual camera's width (a multiple of 32; its rows stay the "
                         f"same): default --init's, else {VirtualCamera().width} (docs/salad.md, "
                         '"The width of the view")')
+    parser.add_argument('--lane-depth-weight', type=float, metavar='W',
+                        help="weigh the depth at the lane cells once more, near L1 (the "
+                        "config's lane_depth_weight; default the weights' own, 0 for new ones; "
+                        'docs/salad.md, "Depth weighed at the lanes")')
     parser.add_argument('--device', default='cpu')
     parser.add_argument('--bf16', action='store_true',
                         help='the network in bfloat16 (autocast; the weights, the optimiser and '
@@ -295,6 +299,9 @@ def run(args: argparse.Namespace) -> int:
         cfg = measure_rows(samples, SaladConfig(camera=camera))
         cfg.validate()
         model = SaladNet(cfg).to(args.device)
+    if args.lane_depth_weight is not None:  # recorded in the weights' config
+        model.cfg = dataclasses.replace(model.cfg, lane_depth_weight=args.lane_depth_weight)
+        model.cfg.validate('--lane-depth-weight')
     optimiser = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
     if 'optimiser' in state:
         optimiser.load_state_dict(state['optimiser'])
