@@ -103,4 +103,3 @@ def _centroid(profile: np.ndarray, road: np.ndarray, peak: np.ndarray, other: np
     total = weight.sum(axis=1)
     return np.where(total > 0, (weight * ACROSS_M[index]).sum(axis=1) /
                     np.maximum(total, 1e-9), ACROSS_M[peak])
-

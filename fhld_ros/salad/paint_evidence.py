@@ -77,12 +77,12 @@ def across_road(lane: np.ndarray) -> np.ndarray:
 
 def across_brightness(points: np.ndarray, across: np.ndarray, offsets_m: np.ndarray,
                       image: np.ndarray, camera: VirtualCamera) -> np.ndarray:
-    """(P, len(offsets_m)): brightness (as brightness()) offsets_m along each point's across
+    """(P, len(offsets_m)): brightness (as _brightness()) offsets_m along each point's across
     vector on the road."""
-    return brightness(points[:, None] + offsets_m[:, None] * across[:, None], image, camera)
+    return _brightness(points[:, None] + offsets_m[:, None] * across[:, None], image, camera)
 
 
-def brightness(points: np.ndarray, image: np.ndarray, camera: VirtualCamera) -> np.ndarray:
+def _brightness(points: np.ndarray, image: np.ndarray, camera: VirtualCamera) -> np.ndarray:
     """The brightest channel of the image's pixels at the projections of points (..., 3), -1
     outside the image or behind it."""
     z = points[..., 2]
