@@ -35,6 +35,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     'train': ('fhld_ros.training.train', 'train the FHLD detector on cached simulator windows'),
     'salad-train': ('fhld_ros.salad.train',
                     'train SALAD, the camera detector, on simulated camera drives'),
+    'salad-average': ('fhld_ros.salad.average',
+                      'the mean of the weights of SALAD checkpoints fine-tuned from one another'),
     'salad-eval': ('fhld_ros.salad.evaluate',
                    'score SALAD with the ONCE-3DLanes metric on held-out drives / datasets'),
     'salad-labels2d': ('fhld_ros.commands.salad_labels2d',
