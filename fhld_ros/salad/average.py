@@ -17,11 +17,8 @@ from pathlib import Path
 import torch
 
 from fhld_ros.salad.checkpoint import SaladCheckpointError, load_salad, save_salad
+from fhld_ros.salad.config import LOSS_FIELDS
 from fhld_ros.salad.model import SaladNet
-
-# SaladConfig fields only the loss reads: fine-tunes may differ in them
-LOSS_FIELDS = frozenset({'pos_weight', 'depth_weight', 'offset_weight', 'lane_depth_weight',
-                         'lane_depth_beta'})
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -14,6 +14,9 @@ STRIDE = 4  # output cells per input pixel, each way (the paper's H/4 x W/4 maps
 # the shipped salad_wide_mount.pt (the network's depth follows the heights it was trained on)
 HEIGHT_RANGE_M = (1.2, 2.0)
 WIDE_MOUNT_HEIGHTS_M = (1.2, 3.0)
+# the fields only the loss reads: fine-tunes of one network may differ in them (salad-average)
+LOSS_FIELDS = frozenset({'pos_weight', 'depth_weight', 'offset_weight', 'lane_depth_weight',
+                         'lane_depth_beta'})
 
 
 @dataclass(frozen=True)
