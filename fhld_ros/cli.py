@@ -37,6 +37,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
                     'train SALAD, the camera detector, on simulated camera drives'),
     'salad-average': ('fhld_ros.salad.average',
                       'the mean of the weights of SALAD checkpoints fine-tuned from one another'),
+    'salad-calibrate': ('fhld_ros.salad.calibrate',
+                        "SALAD weights with their far depth calibrated on held-out images' lanes"),
     'salad-eval': ('fhld_ros.salad.evaluate',
                    'score SALAD with the ONCE-3DLanes metric on held-out drives / datasets'),
     'salad-labels2d': ('fhld_ros.commands.salad_labels2d',

@@ -4,8 +4,9 @@ differently: their mean scored above either on the validation drives, though not
 first on the test drives (docs/salad.md, "Two fine-tunes averaged").
 
 The files must build the same network and decode alike: every config field equal but the loss
-weights, which only training reads; the result keeps the last file's config, so its loss
-weights are what `fhld salad-train --init` inherits.
+weights, which only training reads, and a depth calibration (calibrate.py), which was measured
+on one file's weights and is left out; the result keeps the last file's config otherwise, so
+its loss weights are what `fhld salad-train --init` inherits.
 """
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from pathlib import Path
 import torch
 
 from fhld_ros.salad.checkpoint import SaladCheckpointError, load_salad, save_salad
-from fhld_ros.salad.config import LOSS_FIELDS
+from fhld_ros.salad.config import CALIBRATION_FIELDS, LOSS_FIELDS, uncalibrated
 from fhld_ros.salad.model import SaladNet
 
 
@@ -38,7 +39,8 @@ def average_salad(paths: list[str | os.PathLike]) -> tuple[SaladNet, list[dict]]
     last = models[-1]
     for path, model in zip(paths[:-1], models[:-1]):
         differ = [key for key, value in vars(model.cfg).items()
-                  if key not in LOSS_FIELDS and value != getattr(last.cfg, key)]
+                  if key not in LOSS_FIELDS | CALIBRATION_FIELDS
+                  and value != getattr(last.cfg, key)]
         if differ:
             raise SaladCheckpointError(f'{path} and {paths[-1]} build different networks or '
                                        f'decode differently: {", ".join(differ)}')
@@ -47,6 +49,7 @@ def average_salad(paths: list[str | os.PathLike]) -> tuple[SaladNet, list[dict]]
                   if value.is_floating_point() else value)
             for key, value in states[-1].items()}
     last.load_state_dict(mean)
+    last.cfg = uncalibrated(last.cfg)
     provenance = [{'path': str(path), 'train_command': info.get('train_command', ''),
                    'meta': info.get('meta', {})} for path, info in zip(paths, infos)]
     return last, provenance

@@ -57,7 +57,7 @@ def lane_points(prob: np.ndarray, spatial: np.ndarray, cfg: SaladConfig,
     cam = cfg.camera
     u = (cols + spatial[0][mask] + 0.5) * STRIDE - 0.5
     v = (rows + spatial[1][mask] + 0.5) * STRIDE - 0.5
-    z = np.asarray(cfg.row_shift)[rows] + np.asarray(cfg.row_scale)[rows] * spatial[2][mask]
+    z = cfg.depth(rows, spatial[2][mask])
     if road_profile:
         z = shared_row_depth(z, u, v, prob[mask], cam)
     if road is not None:

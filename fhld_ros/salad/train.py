@@ -35,7 +35,7 @@ from torch.utils.data import DataLoader
 from fhld_ros.errors import ConfigError
 from fhld_ros.salad.augment import SaladAugment, augment_images
 from fhld_ros.salad.checkpoint import config_from_plain, load_salad, save_salad
-from fhld_ros.salad.config import SaladConfig
+from fhld_ros.salad.config import SaladConfig, uncalibrated
 from fhld_ros.salad.dataset import (
     EpochBatches,
     SaladDataset,
@@ -228,6 +228,7 @@ def _start(args: argparse.Namespace) -> tuple[SaladNet | None, dict, VirtualCame
         model, info = load_salad(args.init)
         state.update(init=str(args.init), init_steps=info.get('meta', {}).get('steps'))
         camera = model.cfg.camera
+        model.cfg = uncalibrated(model.cfg)  # measured on the weights before training
     if args.camera_width is not None:
         camera = dataclasses.replace(camera, width=args.camera_width)
         SaladConfig(camera=camera).validate('--camera-width')
