@@ -16,7 +16,7 @@ from fhld_ros.camera.lens import Lens
 from fhld_ros.errors import ConfigError
 from fhld_ros.salad.augment import SaladAugment, augment_images, draw, flip
 from fhld_ros.salad.checkpoint import SaladCheckpointError, load_salad, save_salad
-from fhld_ros.salad.config import STRIDE, SaladConfig
+from fhld_ros.salad.config import STRIDE, SaladConfig, uncalibrated
 from fhld_ros.salad.decode import decode, extend_to_row_edge
 from fhld_ros.salad.detector import SaladDetector
 from fhld_ros.salad.evaluate import score
@@ -527,8 +527,10 @@ def test_training_can_start_from_shipped_weights(tmp_path):
                  '--init', str(DEFAULT_SALAD_CHECKPOINT), '--lane-depth-weight', '0.25']) == 0
     tuned, info = load_salad(out / 'salad.pt')
     shipped, _ = load_salad(DEFAULT_SALAD_CHECKPOINT)
-    # its row depth statistics, not this one image's; the loss it was tuned with recorded
-    assert tuned.cfg == dataclasses.replace(shipped.cfg, lane_depth_weight=0.25)
+    # its row depth statistics, not this one image's; the loss it was tuned with recorded; the
+    # shipped weights' depth calibration left behind (measured on them, not the tuned ones)
+    assert shipped.cfg.depth_calibration_m
+    assert tuned.cfg == dataclasses.replace(uncalibrated(shipped.cfg), lane_depth_weight=0.25)
     assert info['meta']['init'] == str(DEFAULT_SALAD_CHECKPOINT) and info['meta']['steps'] == 2
     assert info['meta']['init_steps'] == load_salad(DEFAULT_SALAD_CHECKPOINT)[1]['meta']['steps']
     moved = [not torch.equal(a, b) for a, b in zip(tuned.state_dict().values(),
