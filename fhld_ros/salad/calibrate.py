@@ -29,9 +29,7 @@ from fhld_ros.errors import ConfigError
 from fhld_ros.salad.checkpoint import SaladCheckpointError, save_salad
 from fhld_ros.salad.config import SaladConfig, uncalibrated
 from fhld_ros.salad.detector import SaladDetector
-from fhld_ros.salad.evaluate import held_out_drives
-from fhld_ros.salad.once_format import read_once
-from fhld_ros.salad.openlane_format import read_openlane
+from fhld_ros.salad.evaluate import labelled_images
 from fhld_ros.salad.sample import CameraLaneSample
 from fhld_ros.salad.sim_source import add_variant_arguments, drive_variant
 from fhld_ros.salad.targets import lane_targets
@@ -101,14 +99,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError('--drives and --first-drive must be >= 0, --frames and --workers >= 1')
     detector = SaladDetector(args.checkpoint)
     detector.cfg = uncalibrated(detector.cfg)
-    sources: dict[str, Iterable[CameraLaneSample]] = {}
-    if args.drives:
-        sources['validation drives'] = held_out_drives(
-            args.drives, args.frames, 'val', drive_variant(args), args.first_drive, args.workers)
-    if args.once:
-        sources['once'] = read_once(args.once, args.once_split)
-    if args.openlane:
-        sources['openlane'] = read_openlane(args.openlane)
+    sources = labelled_images(args, 'validation drives', 'val', drive_variant(args))
     if not sources:
         raise ConfigError('nothing to calibrate on: --drives 0 and no --once / --openlane')
     measured = [depth_ratios(detector, samples) for samples in sources.values()]

@@ -176,6 +176,22 @@ def _drive_samples(job: tuple[int, int, DriveVariant]) -> list[CameraLaneSample]
     return list(simulated_samples(seed, frames, variant=variant))
 
 
+def labelled_images(args: argparse.Namespace, drives_name: str, split: str,
+                    variant: DriveVariant) -> dict[str, Iterable[CameraLaneSample]]:
+    """The labelled images the options name, by source: the split's simulated drives (--drives
+    from --first-drive, as drives_name), an ONCE-3DLanes (--once) and an OpenLane (--openlane)
+    folder."""
+    sources: dict[str, Iterable[CameraLaneSample]] = {}
+    if args.drives:
+        sources[drives_name] = held_out_drives(args.drives, args.frames, split, variant,
+                                               args.first_drive, args.workers)
+    if args.once:
+        sources['once'] = read_once(args.once, args.once_split)
+    if args.openlane:
+        sources['openlane'] = read_openlane(args.openlane)
+    return sources
+
+
 def _print(name: str, rows: dict[str, dict]) -> None:
     first = next(iter(rows.values()))
     print(f'{name}: {first["images"]} images, {first["gt"]} GT lanes')
@@ -197,15 +213,8 @@ def run(args: argparse.Namespace) -> int:
     detector = SaladDetector(args.checkpoint, flip_average=args.flip_average,
                              road_profile=args.road_profile, **decoding_options(args))
     perfect = PerfectMaps(detector, args.perfect) if args.perfect else None
-    sources = {}
-    if args.drives:
-        split = 'val' if args.validation else 'test'
-        sources['validation' if args.validation else 'simulated'] = held_out_drives(
-            args.drives, args.frames, split, variant, args.first_drive, args.workers)
-    if args.once:
-        sources['once'] = read_once(args.once, args.once_split)
-    if args.openlane:
-        sources['openlane'] = read_openlane(args.openlane)
+    sources = labelled_images(args, 'validation' if args.validation else 'simulated',
+                              'val' if args.validation else 'test', variant)
     if not sources:
         raise ConfigError('nothing to score: --drives 0 and no --once / --openlane')
     results, image_pitch = {}, args.road_pitch == 'image'
