@@ -17,7 +17,13 @@ from pathlib import Path
 
 import torch
 
-from fhld_ros.salad.checkpoint import SaladCheckpointError, load_salad, save_salad
+from fhld_ros.bagio import check_file_output
+from fhld_ros.salad.checkpoint import (
+    SaladCheckpointError,
+    load_salad,
+    resolve_salad_checkpoint,
+    save_salad,
+)
 from fhld_ros.salad.config import CALIBRATION_FIELDS, LOSS_FIELDS, uncalibrated
 from fhld_ros.salad.model import SaladNet
 
@@ -56,10 +62,11 @@ def average_salad(paths: list[str | os.PathLike]) -> tuple[SaladNet, list[dict]]
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.out.exists() and not args.overwrite:
-        raise SaladCheckpointError(f'{args.out} exists (--overwrite to replace it)')
-    model, provenance = average_salad(args.checkpoints)
+    inputs = {f'CHECKPOINT {i + 1}': resolve_salad_checkpoint(path)
+              for i, path in enumerate(args.checkpoints)}
     args.out.parent.mkdir(parents=True, exist_ok=True)
+    check_file_output(args.out, args.overwrite, inputs, 'OUT')  # never over an input
+    model, provenance = average_salad(args.checkpoints)
     save_salad(args.out, model, ' '.join(sys.argv), {'averaged': provenance})
     print(f'wrote {args.out}: the mean of {len(provenance)} checkpoints')
     return 0

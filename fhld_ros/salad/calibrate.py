@@ -25,8 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
+from fhld_ros.bagio import check_file_output
 from fhld_ros.errors import ConfigError
-from fhld_ros.salad.checkpoint import SaladCheckpointError, save_salad
+from fhld_ros.salad.checkpoint import resolve_salad_checkpoint, save_salad
 from fhld_ros.salad.config import SaladConfig, uncalibrated
 from fhld_ros.salad.detector import SaladDetector
 from fhld_ros.salad.evaluate import labelled_images
@@ -93,8 +94,9 @@ def calibration(network: np.ndarray, log_ratio: np.ndarray, max_depth_m: float
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.out.exists() and not args.overwrite:
-        raise SaladCheckpointError(f'{args.out} exists (--overwrite to replace it)')
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    check_file_output(args.out, args.overwrite,
+                      {'CHECKPOINT': resolve_salad_checkpoint(args.checkpoint)}, 'OUT')
     if args.drives < 0 or args.first_drive < 0 or args.frames < 1 or args.workers < 1:
         raise ConfigError('--drives and --first-drive must be >= 0, --frames and --workers >= 1')
     detector = SaladDetector(args.checkpoint)
@@ -123,7 +125,6 @@ def _write(args: argparse.Namespace, detector: SaladDetector, cfg: SaladConfig,
     meta = {**info.get('meta', {}), 'calibrated': {
         'checkpoint': str(args.checkpoint), 'command': ' '.join(sys.argv), 'sources': sources,
         'lane_cells': cells}}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     save_salad(args.out, model, info.get('train_command', ''), meta)
     print(f'wrote {args.out}: the depth calibrated on {cells} lane cells of the '
           f'{", ".join(sources)}')
