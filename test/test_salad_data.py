@@ -19,7 +19,6 @@ from fhld_ros.salad.sim_source import (
     HFOV_RANGE_DEG,
     PITCH_RANGE_DEG,
     PRINCIPAL_JITTER,
-    DriveVariant,
     camera_for_seed,
     drive_camera,
     salad_seeds,
@@ -27,7 +26,6 @@ from fhld_ros.salad.sim_source import (
     visible_lanes,
 )
 from fhld_ros.sim.camera import HFOV_DEG, intrinsics
-from fhld_ros.sim.labels2d_gt import LABEL_RANGE_M
 
 REAL = Path(__file__).resolve().parents[1].parent / 'shared' / 'real_scans'
 OPENLANE_EXAMPLES = REAL / 'openlane_examples'
@@ -117,26 +115,6 @@ def test_simulated_samples_repeat_per_seed():
             np.testing.assert_array_equal(la, lb)
     np.testing.assert_allclose(first[0].intrinsics, camera_for_seed(seed).intrinsics((160, 90)))
 
-
-
-def test_training_labels_reach_past_the_scored_range():
-    """--label-range: the same drive's lanes labelled farther, the scored range's the same."""
-    seed = salad_seeds('train', 1, start=11)[0]
-    far = DriveVariant(label_range_m=80.0)
-    scored, = simulated_samples(seed, 1, (240, 135))
-    longer, = simulated_samples(seed, 1, (240, 135), variant=far)
-    np.testing.assert_array_equal(scored.image, longer.image)
-    near = np.concatenate(scored.lanes)
-    assert near[:, 2].max() <= LABEL_RANGE_M < np.concatenate(longer.lanes)[:, 2].max() <= 80.0
-    # the same lines within it, resampled from another start: within one step (0.25 m)
-    cut = np.concatenate(longer.lanes)
-    cut = cut[cut[:, 2] <= LABEL_RANGE_M + 1.0]
-    gap = np.linalg.norm(near[:, None] - cut[None], axis=2).min(axis=1)
-    assert gap.max() < 0.25, gap.max()
-    assert far.tag() == '_r80' and far.meta() == {'label_range_m': 80.0}
-    assert DriveVariant().meta() == {}
-    with pytest.raises(ValueError, match='label range'):
-        DriveVariant(label_range_m=50.0)
 
 def _samples() -> list[CameraLaneSample]:
     """Two small samples: smooth images (JPEG keeps them), lanes far to near in the first."""

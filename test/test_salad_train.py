@@ -73,7 +73,6 @@ def test_a_timed_run_ends_within_its_minutes_with_its_schedule_done(tmp_path, ca
     (['--minutes', '0'], 'must be > 0'),
     (['--minutes', '1', '--render-share', '1'], 'within'),
     (['--first-drive', str(10**6)], '--first-drive'),
-    (['--label-range', '40'], 'the label range must be within 60'),
 ])
 def test_budget_and_drive_flags_are_checked(tmp_path, capsys, flags, message):
     assert main(['salad-train', str(tmp_path / 'run'), '--drives', '1', *flags]) == 2
@@ -85,18 +84,17 @@ def test_drives_for_a_users_mount_are_rendered_and_named_apart(tmp_path):
     out = tmp_path / 'run'
     assert main(['salad-train', str(out), '--drives', '1', '--frames', '1', '--steps', '1',
                  '--batch', '1', '--workers', '0', '--threads', '1', '--camera-height', '2.6',
-                 '--label-range', '75', '--init', str(DEFAULT_SALAD_CHECKPOINT)]) == 0
+                 '--init', str(DEFAULT_SALAD_CHECKPOINT)]) == 0
     seed = salad_seeds('train', 1)[0]
-    # the seeds' own drives would be sim_<seed>.npz: a cache never mixes them unasked
-    assert [p.name for p in (out / 'cache').iterdir()] == [f'sim_{seed}_h2.60-2.60_r75.npz']
-    sample = ShardSamples([out / 'cache' / f'sim_{seed}_h2.60-2.60_r75.npz']).lanes[0]
+    # the seeds' own cameras would be sim_<seed>.npz: a cache never mixes the two unasked
+    assert [p.name for p in (out / 'cache').iterdir()] == [f'sim_{seed}_h2.60-2.60.npz']
+    sample = ShardSamples([out / 'cache' / f'sim_{seed}_h2.60-2.60.npz']).lanes[0]
     pitch = np.radians(camera_for_seed(seed).pitch_deg)
     near = np.concatenate(sample)
     near = near[near[:, 2] < 15.0]
     below = near @ np.array([0.0, np.cos(pitch), np.sin(pitch)])  # the level road's normal
     assert abs(np.median(below) - 2.6) < 0.03 and np.abs(below - 2.6).max() < 0.15  # crowns
-    meta = load_salad(out / 'salad.pt')[1]['meta']
-    assert meta['camera_heights_m'] == [2.6, 2.6] and meta['label_range_m'] == 75.0
+    assert load_salad(out / 'salad.pt')[1]['meta']['camera_heights_m'] == [2.6, 2.6]
 
 
 def test_weights_train_on_a_wider_view_and_a_cache_keeps_its_width(tmp_path, capsys):

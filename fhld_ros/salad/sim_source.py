@@ -33,7 +33,7 @@ from fhld_ros.sim.camera import (
     intrinsics,
 )
 from fhld_ros.sim.camera import mount_extrinsic as camera_mount
-from fhld_ros.sim.labels2d_gt import LABEL_RANGE_M, sim_image_labels
+from fhld_ros.sim.labels2d_gt import sim_image_labels
 from fhld_ros.sim.simulator import MAX_SWEEPS, Simulator
 
 SALAD_TRAIN_SEED_BASE = 3_000_000
@@ -50,7 +50,6 @@ HFOV_RANGE_DEG = (50.0, 90.0)
 PRINCIPAL_JITTER = 0.03  # principal point off the image centre, up to this share of the size
 FIXED_HEIGHT_M = 1.5  # randomise=False: this height, PITCH_DEG and HFOV_DEG, centred
 MAX_SIDE_M = 3.0  # --camera-side: a lane's width
-MAX_LABEL_RANGE_M = 150.0  # --label-range: past it a lane is under a pixel row of the image
 
 
 @dataclass(frozen=True)
@@ -103,16 +102,11 @@ class DriveVariant:
     roads paint no line along their kerbs (the lanes run to the kerb), and some have gutters
     along the paved edges, sealed seams or bright pavement. Without it every road paints a line
     just inside each kerb, and a network learns "kerb => lane line".
-
-    How far the lanes are labelled: label_range_m of camera depth. Scoring labels and decodes
-    to LABEL_RANGE_M (SaladConfig.max_depth_m); training labels past it keep the network from
-    learning the edge where labels end as a place where depth stops (docs/salad.md).
     """
 
     heights_m: tuple[float, float] | None = None
     side_m: float = 0.0
     road_look: bool = False
-    label_range_m: float = LABEL_RANGE_M
 
     def __post_init__(self) -> None:
         if self.heights_m is not None:
@@ -120,25 +114,19 @@ class DriveVariant:
         if not 0.0 <= self.side_m <= MAX_SIDE_M:
             raise ValueError(f'the cameras\' side offset must be within 0..{MAX_SIDE_M:g} m, '
                              f'got {self.side_m:g}')
-        if not LABEL_RANGE_M <= self.label_range_m <= MAX_LABEL_RANGE_M:
-            raise ValueError(f'the label range must be within {LABEL_RANGE_M:g}..'
-                             f'{MAX_LABEL_RANGE_M:g} m, got {self.label_range_m:g}')
 
     def tag(self) -> str:
         """What sets this variant apart from the seeds' own, for file names ('' for none)."""
         heights = '' if self.heights_m is None else \
             f'_h{self.heights_m[0]:.2f}-{self.heights_m[1]:.2f}'
-        labels = '' if self.label_range_m == LABEL_RANGE_M else f'_r{self.label_range_m:g}'
         return (heights + (f'_s{self.side_m:.2f}' if self.side_m else '') +
-                ('_look' if self.road_look else '') + labels)
+                ('_look' if self.road_look else ''))
 
     def meta(self) -> dict[str, Any]:
         """What trained weights record of it."""
         return {**({'camera_heights_m': list(self.heights_m)} if self.heights_m else {}),
                 **({'camera_side_m': self.side_m} if self.side_m else {}),
-                **({'road_look': True} if self.road_look else {}),
-                **({'label_range_m': self.label_range_m}
-                   if self.label_range_m != LABEL_RANGE_M else {})}
+                **({'road_look': True} if self.road_look else {})}
 
     def road(self, seed: int) -> dict[str, Any]:
         """The simulator options of the seed's road (none: its own)."""
@@ -165,17 +153,15 @@ def add_variant_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def drive_variant(args: argparse.Namespace) -> DriveVariant:
-    """--camera-height, --camera-side and --road-look, checked; salad-train's --label-range
-    too (the commands that score label to LABEL_RANGE_M)."""
+    """--camera-height, --camera-side and --road-look, checked."""
     heights = args.camera_height
     if heights is not None and len(heights) > 2:
         raise ConfigError(f'--camera-height takes M or LOW HIGH, got {heights}')
     try:
         return DriveVariant(None if heights is None else (heights[0], heights[-1]),
-                            args.camera_side, args.road_look,
-                            getattr(args, 'label_range', LABEL_RANGE_M))
+                            args.camera_side, args.road_look)
     except ValueError as exc:
-        raise ConfigError(f'--camera-height / --camera-side / --label-range: {exc}') from None
+        raise ConfigError(f'--camera-height / --camera-side: {exc}') from None
 
 
 def camera_for_seed(seed: int, randomise: bool = True, variant: DriveVariant = SEEDS_OWN
@@ -222,12 +208,11 @@ def drive_camera(seed: int, frames: int, size: tuple[int, int] = DEFAULT_SIZE,
                      K=draw.intrinsics((width, height)))
 
 
-def visible_lanes(camera: SimCamera, k: int, range_m: float = LABEL_RANGE_M
-                  ) -> tuple[CameraImage, list[np.ndarray]]:
-    """Sweep k's image and the 3D GT of the lane pieces it shows to range_m of depth, each
-    (N, 3) in the optical frame, near end first."""
+def visible_lanes(camera: SimCamera, k: int) -> tuple[CameraImage, list[np.ndarray]]:
+    """Sweep k's image and the 3D GT of the lane pieces it shows, each (N, 3) in the optical
+    frame, near end first."""
     image = camera.render(k)
-    _, pieces = sim_image_labels(camera.sim, camera.calibration(), image, range_m)
+    _, pieces = sim_image_labels(camera.sim, camera.calibration(), image)
     to_camera = np.linalg.inv(image.camera_to_odom)
     return image, [p @ to_camera[:3, :3].T + to_camera[:3, 3] for p in pieces]
 
@@ -244,6 +229,6 @@ def simulated_samples(seed: int, frames: int, size: tuple[int, int] = DEFAULT_SI
     T_road_camera[2, 3] += camera.sim.mount.z
     road = RoadPlane.from_extrinsic(T_road_camera)
     for k in range(0, frames * FRAME_STRIDE, FRAME_STRIDE):
-        image, lanes = visible_lanes(camera, k, variant.label_range_m)
+        image, lanes = visible_lanes(camera, k)
         yield CameraLaneSample(image.rgb, camera.K.copy(), lanes, f'sim seed {seed} sweep {k}',
                                road)

@@ -61,7 +61,6 @@ from fhld_ros.salad.sim_source import (
 )
 from fhld_ros.salad.targets import lane_targets, row_statistics
 from fhld_ros.salad.virtual_camera import VirtualCamera
-from fhld_ros.sim.labels2d_gt import LABEL_RANGE_M
 
 ROW_STATS_SAMPLES = 400
 WARMUP_STEPS = 200
@@ -78,10 +77,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         'run renders drives no earlier run saw)')
     parser.add_argument('--frames', type=int, default=10, help='images per drive, 1 s apart')
     add_variant_arguments(parser)
-    parser.add_argument('--label-range', type=float, default=LABEL_RANGE_M, metavar='M',
-                        help='the drives\' lanes labelled to M metres of camera depth (default '
-                        f'{LABEL_RANGE_M:g}, the range decoded and scored); past it the '
-                        'network sees no edge where labels end (docs/salad.md)')
     parser.add_argument('--once', type=Path, metavar='ROOT',
                         help='also train on an ONCE-3DLanes folder (its --once-split)')
     parser.add_argument('--once-split', default='train', choices=ONCE_SPLITS)

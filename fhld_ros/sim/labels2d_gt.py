@@ -1,6 +1,6 @@
 """Ground-truth 2D lane labels of a simulated camera image: the scene's GT lines projected
-with the camera's true pose, cut where they leave the image, lie beyond LABEL_RANGE_M (or a
-range given) or are hidden behind something nearer in the rendered depth (docs/annotation.md)."""
+with the camera's true pose, cut where they leave the image, lie beyond LABEL_RANGE_M or are
+hidden behind something nearer in the rendered depth (docs/annotation.md)."""
 from __future__ import annotations
 
 import argparse
@@ -37,8 +37,8 @@ def occluded(depth_image: np.ndarray, uv: np.ndarray, depth: np.ndarray) -> np.n
 
 
 def project_lines(lines: list[np.ndarray], ids: list[int], sensor_to_odom: np.ndarray,
-                  calib: CameraCalibration, depth_image: np.ndarray, stamp_ns: int,
-                  range_m: float = LABEL_RANGE_M) -> tuple[ImageLabels, list[np.ndarray]]:
+                  calib: CameraCalibration, depth_image: np.ndarray, stamp_ns: int
+                  ) -> tuple[ImageLabels, list[np.ndarray]]:
     """Odom-frame GT polylines -> the visible pieces in the image (near end first), and the
     same pieces in 3D (odom frame): the GT of exactly what the labels show."""
     to_cloud = np.linalg.inv(sensor_to_odom)
@@ -48,7 +48,7 @@ def project_lines(lines: list[np.ndarray], ids: list[int], sensor_to_odom: np.nd
         if pts.shape[0] < 2:
             continue
         uv, depth, inside = calib.project(pts @ to_cloud[:3, :3].T + to_cloud[:3, 3])
-        keep = inside & (depth <= range_m)
+        keep = inside & (depth <= LABEL_RANGE_M)
         keep[keep] = ~occluded(depth_image, uv[keep], depth[keep])
         for a, b in runs(keep):
             if b - a < 2:
@@ -60,14 +60,14 @@ def project_lines(lines: list[np.ndarray], ids: list[int], sensor_to_odom: np.nd
     return labels, pieces_3d
 
 
-def sim_image_labels(sim: Simulator, calib: CameraCalibration, image: CameraImage,
-                     range_m: float = LABEL_RANGE_M) -> tuple[ImageLabels, list[np.ndarray]]:
+def sim_image_labels(sim: Simulator, calib: CameraCalibration, image: CameraImage
+                     ) -> tuple[ImageLabels, list[np.ndarray]]:
     """Labels of a SimCamera image of the simulator's scene (calib: SimCamera.calibration()),
-    and their 3D GT pieces (odom frame), to range_m of camera depth."""
+    and their 3D GT pieces (odom frame)."""
     pose = sim.true_poses[image.index]
     lines, ids = crop_to_disc(sim.scene.lane_lines, image.camera_to_odom[:2, 3],
-                              range_m + 10.0)
-    return project_lines(lines, ids, pose, calib, image.depth, image.stamp_ns, range_m)
+                              LABEL_RANGE_M + 10.0)
+    return project_lines(lines, ids, pose, calib, image.depth, image.stamp_ns)
 
 
 COLOURS = ((230, 25, 75), (60, 180, 75), (0, 130, 200), (245, 130, 48), (145, 30, 180),
