@@ -30,9 +30,9 @@ from fhld_ros.errors import ConfigError
 from fhld_ros.salad.checkpoint import resolve_salad_checkpoint, save_salad
 from fhld_ros.salad.config import SaladConfig, uncalibrated
 from fhld_ros.salad.detector import SaladDetector
-from fhld_ros.salad.evaluate import labelled_images
+from fhld_ros.salad.evaluate import add_labelled_image_arguments, labelled_images
 from fhld_ros.salad.sample import CameraLaneSample
-from fhld_ros.salad.sim_source import add_variant_arguments, drive_variant
+from fhld_ros.salad.sim_source import drive_variant
 from fhld_ros.salad.targets import lane_targets
 
 BIN_M = 5.0
@@ -42,18 +42,9 @@ MIN_CELLS = 200
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('checkpoint', type=Path, help='SALAD weights (a path or shipped name)')
     parser.add_argument('out', type=Path, help='the calibrated copy to write')
-    parser.add_argument('--drives', type=int, default=150,
-                        help='simulated validation drives to measure on (0: none)')
-    parser.add_argument('--first-drive', type=int, default=300,
-                        help='the first of them (default 300: past the drives that `salad-eval '
-                             '--validation` chooses and confirms settings on)')
-    parser.add_argument('--frames', type=int, default=2, help='images per drive, 1 s apart')
-    parser.add_argument('--once', type=Path, metavar='ROOT', help='also an ONCE-3DLanes folder')
-    parser.add_argument('--once-split', default='val')
-    parser.add_argument('--openlane', type=Path, metavar='ROOT', help='also an OpenLane folder')
-    add_variant_arguments(parser)
-    parser.add_argument('--workers', type=int, default=1,
-                        help='processes rendering the simulated drives')
+    add_labelled_image_arguments(parser, 150, 2, 300, 'the first validation drive (default '
+                                 '300: past the drives that `salad-eval --validation` chooses '
+                                 'and confirms settings on)')
     parser.add_argument('--overwrite', action='store_true', help='overwrite OUT if it exists')
 
 
@@ -97,8 +88,6 @@ def run(args: argparse.Namespace) -> int:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     check_file_output(args.out, args.overwrite,
                       {'CHECKPOINT': resolve_salad_checkpoint(args.checkpoint)}, 'OUT')
-    if args.drives < 0 or args.first_drive < 0 or args.frames < 1 or args.workers < 1:
-        raise ConfigError('--drives and --first-drive must be >= 0, --frames and --workers >= 1')
     detector = SaladDetector(args.checkpoint)
     detector.cfg = uncalibrated(detector.cfg)
     sources = labelled_images(args, 'validation drives', 'val', drive_variant(args))

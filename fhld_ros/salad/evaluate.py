@@ -66,18 +66,11 @@ RANGE_STEP_M = 0.1  # GT points this far apart for the error by range
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--checkpoint', type=Path, default=DEFAULT_SALAD_CHECKPOINT)
-    parser.add_argument('--drives', type=int, default=10,
-                        help='held-out simulated drives (0: none)')
-    parser.add_argument('--frames', type=int, default=5, help='images per drive, 1 s apart')
-    parser.add_argument('--first-drive', type=int, default=0,
-                        help="the split's drives from this one (e.g. a second validation set "
-                             'to confirm a choice made on the first)')
+    add_labelled_image_arguments(parser, 10, 5, 0, "the split's drives from this one (e.g. a "
+                                 'second validation set to confirm a choice made on the first)')
     parser.add_argument('--validation', action='store_true',
                         help="SALAD's validation seeds instead of its test seeds (for choosing "
                              'settings and checkpoints)')
-    parser.add_argument('--once', type=Path, metavar='ROOT', help='an ONCE-3DLanes folder')
-    parser.add_argument('--once-split', default='val')
-    parser.add_argument('--openlane', type=Path, metavar='ROOT', help='an OpenLane folder')
     parser.add_argument('--perfect', nargs='+', choices=HEADS, default=[], metavar='HEAD',
                         help='replace these heads (seg, offsets, depth) by the targets of the '
                              "images' GT lanes: what F1 would be with them perfect")
@@ -96,10 +89,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --road-plane, the road's pitch from the mount, or from each "
                              "image's own lanes where the network's road is off the mount's "
                              'height (lanes_road.py)')
-    add_variant_arguments(parser)
-    parser.add_argument('--workers', type=int, default=1,
-                        help='processes rendering the simulated drives (the scoring stays in '
-                             'one; the same images and scores at any number)')
     parser.add_argument('--json', action='store_true', help='print one JSON object last')
 
 
@@ -176,11 +165,31 @@ def _drive_samples(job: tuple[int, int, DriveVariant]) -> list[CameraLaneSample]
     return list(simulated_samples(seed, frames, variant=variant))
 
 
+def add_labelled_image_arguments(parser: argparse.ArgumentParser, drives: int, frames: int,
+                                 first_drive: int, first_drive_help: str) -> None:
+    """The options labelled_images reads, with the commands' own defaults: --drives,
+    --frames, --first-drive, the drives' variant, --workers, --once [--once-split],
+    --openlane."""
+    parser.add_argument('--drives', type=int, default=drives,
+                        help='held-out simulated drives (0: none)')
+    parser.add_argument('--frames', type=int, default=frames, help='images per drive, 1 s apart')
+    parser.add_argument('--first-drive', type=int, default=first_drive, help=first_drive_help)
+    add_variant_arguments(parser)
+    parser.add_argument('--workers', type=int, default=1,
+                        help='processes rendering the simulated drives (the same images at any '
+                             'number)')
+    parser.add_argument('--once', type=Path, metavar='ROOT', help='an ONCE-3DLanes folder')
+    parser.add_argument('--once-split', default='val')
+    parser.add_argument('--openlane', type=Path, metavar='ROOT', help='an OpenLane folder')
+
+
 def labelled_images(args: argparse.Namespace, drives_name: str, split: str,
                     variant: DriveVariant) -> dict[str, Iterable[CameraLaneSample]]:
     """The labelled images the options name, by source: the split's simulated drives (--drives
     from --first-drive, as drives_name), an ONCE-3DLanes (--once) and an OpenLane (--openlane)
     folder."""
+    if args.drives < 0 or args.first_drive < 0 or args.frames < 1 or args.workers < 1:
+        raise ConfigError('--drives and --first-drive must be >= 0, --frames and --workers >= 1')
     sources: dict[str, Iterable[CameraLaneSample]] = {}
     if args.drives:
         sources[drives_name] = held_out_drives(args.drives, args.frames, split, variant,
@@ -205,10 +214,8 @@ def _print(name: str, rows: dict[str, dict]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.drives < 0 or args.first_drive < 0 or args.frames < 1 or args.road_plane < 0 or \
-            args.workers < 1:
-        raise ConfigError('--drives, --first-drive and --road-plane must be >= 0, --frames and '
-                          '--workers >= 1')
+    if args.road_plane < 0:
+        raise ConfigError(f'--road-plane must be >= 0, got {args.road_plane:g}')
     variant = drive_variant(args)
     detector = SaladDetector(args.checkpoint, flip_average=args.flip_average,
                              road_profile=args.road_profile, **decoding_options(args))
